@@ -1,0 +1,355 @@
+//! Reading point clouds and writing fitted models.
+//!
+//! * [`load_points`]: an OBJ file (its vertices are the points, faces ignored; parsed by `tobj`) or
+//!   a PLY file (ascii or binary, `x y z` vertex properties; parsed by `ply-rs-bw`).
+//! * [`write_obj`]: a closed triangle mesh.
+//! * [`FittedParams`]: the parameters of a fitted model, serialisable to JSON.
+//!
+//! Every error names the file and says what is wrong, with the line where there is one.
+
+use crate::model::dynamics::ModelState;
+use crate::model::fem::Tessellation;
+use crate::model::fit::{FitReport, Residuals};
+use bevy::math::DVec3;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// A file that could not be read as points, or written.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IoError {
+    /// The file.
+    pub path: PathBuf,
+    /// What is wrong, with the line number where one applies.
+    pub message: String,
+}
+
+impl fmt::Display for IoError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}: {}", self.path.display(), self.message)
+    }
+}
+
+impl std::error::Error for IoError {}
+
+/// An error on one line: parser messages that span lines are folded with "; ".
+fn err(path: &Path, message: impl Into<String>) -> IoError {
+    let message: String = message.into();
+    let one_line = message
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .collect::<Vec<_>>()
+        .join("; ");
+    IoError {
+        path: path.to_path_buf(),
+        message: one_line,
+    }
+}
+
+/// Reads a point cloud from an `.obj` or `.ply` file (by extension, case-insensitive).
+/// Fails on a missing file, a directory, an unreadable or empty file, text that is not numbers,
+/// and NaN or infinite coordinates.
+pub fn load_points(path: &Path) -> Result<Vec<DVec3>, IoError> {
+    if path.is_dir() {
+        return Err(err(path, "is a directory, not a point file"));
+    }
+    let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    if bytes.iter().all(|b| b.is_ascii_whitespace()) {
+        return Err(err(path, "the file is empty"));
+    }
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    let points = match ext.as_str() {
+        "obj" => load_obj(path, &bytes)?,
+        "ply" => load_ply(path, &bytes)?,
+        _ => {
+            return Err(err(
+                path,
+                format!("unsupported extension {ext:?}: expected .obj or .ply"),
+            ));
+        }
+    };
+    if points.is_empty() {
+        return Err(err(path, "contains no points"));
+    }
+    Ok(points)
+}
+
+/// Parses OBJ vertices with tobj. tobj only returns vertices that elements reference, so every
+/// `v` line is followed by a one-vertex element `l -1` that references it; faces are ignored.
+fn load_obj(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
+    let text =
+        std::str::from_utf8(bytes).map_err(|e| err(path, format!("not UTF-8 text ({e})")))?;
+    let mut augmented = String::with_capacity(text.len() * 2);
+    let mut vertex_lines = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        let mut words = line.split_whitespace();
+        match words.next() {
+            Some("v") => {
+                let coords: Vec<&str> = words.collect();
+                let numeric =
+                    coords.len() >= 3 && coords[..3].iter().all(|w| w.parse::<f64>().is_ok());
+                if !numeric {
+                    return Err(err(
+                        path,
+                        format!(
+                            "line {}: expected `v x y z` with three numbers, found {:?}",
+                            n + 1,
+                            line.trim()
+                        ),
+                    ));
+                }
+                vertex_lines.push(n + 1);
+                augmented.push_str(line);
+                augmented.push_str("\nl -1\n");
+            }
+            // Faces, lines, groups and materials are not points: leave them out.
+            Some("f" | "l" | "p" | "mtllib" | "usemtl") => {}
+            _ => {
+                augmented.push_str(line);
+                augmented.push('\n');
+            }
+        }
+    }
+    if vertex_lines.is_empty() {
+        return Err(err(path, "contains no `v` vertex lines"));
+    }
+    let options = tobj::LoadOptions {
+        single_index: true,
+        ignore_points: false,
+        ignore_lines: false,
+        ..Default::default()
+    };
+    let (models, _) = tobj::load_obj_buf(&mut augmented.as_bytes(), &options, |_| {
+        Err(tobj::LoadError::OpenFileFailed)
+    })
+    .map_err(|e| err(path, format!("OBJ parse error: {e}")))?;
+    let positions: Vec<f64> = models.into_iter().flat_map(|m| m.mesh.positions).collect();
+    let points: Vec<DVec3> = positions
+        .chunks_exact(3)
+        .map(|c| DVec3::new(c[0], c[1], c[2]))
+        .collect();
+    if points.len() != vertex_lines.len() {
+        return Err(err(
+            path,
+            format!("read {} of {} vertices", points.len(), vertex_lines.len()),
+        ));
+    }
+    if let Some(i) = points.iter().position(|p| !p.is_finite()) {
+        return Err(err(
+            path,
+            format!(
+                "line {}: vertex {} has a NaN or infinite coordinate",
+                vertex_lines[i],
+                i + 1
+            ),
+        ));
+    }
+    Ok(points)
+}
+
+fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
+    use ply_rs_bw::parser::Parser;
+    use ply_rs_bw::ply::{DefaultElement, Property};
+    let parser = Parser::<DefaultElement>::new();
+    let ply = parser
+        .read_ply(&mut std::io::Cursor::new(bytes))
+        .map_err(|e| err(path, format!("PLY parse error: {e}")))?;
+    let Some(vertices) = ply.payload.get("vertex") else {
+        return Err(err(path, "has no `vertex` element"));
+    };
+    let scalar = |p: &Property| -> Option<f64> {
+        Some(match *p {
+            Property::Char(v) => v as f64,
+            Property::UChar(v) => v as f64,
+            Property::Short(v) => v as f64,
+            Property::UShort(v) => v as f64,
+            Property::Int(v) => v as f64,
+            Property::UInt(v) => v as f64,
+            Property::Float(v) => v as f64,
+            Property::Double(v) => v,
+            _ => return None,
+        })
+    };
+    let mut points = Vec::with_capacity(vertices.len());
+    for (i, v) in vertices.iter().enumerate() {
+        let mut c = [0.0; 3];
+        for (k, name) in ["x", "y", "z"].iter().enumerate() {
+            c[k] = v.get(*name).and_then(scalar).ok_or_else(|| {
+                err(
+                    path,
+                    format!("vertex {}: no scalar property `{name}`", i + 1),
+                )
+            })?;
+        }
+        let p = DVec3::from_array(c);
+        if !p.is_finite() {
+            return Err(err(
+                path,
+                format!("vertex {} has a NaN or infinite coordinate", i + 1),
+            ));
+        }
+        points.push(p);
+    }
+    Ok(points)
+}
+
+/// Writes a triangle mesh as OBJ (`v` lines, then 1-based `f` lines) with a comment header.
+pub fn write_obj(
+    path: &Path,
+    vertices: &[DVec3],
+    triangles: &[[u32; 3]],
+    comment: &str,
+) -> Result<(), IoError> {
+    use std::fmt::Write as _;
+    let mut s = String::with_capacity(vertices.len() * 40 + triangles.len() * 24);
+    for line in comment.lines() {
+        let _ = writeln!(s, "# {line}");
+    }
+    for v in vertices {
+        let _ = writeln!(s, "v {} {} {}", v.x, v.y, v.z);
+    }
+    for t in triangles {
+        let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
+    }
+    std::fs::write(path, s).map_err(|e| err(path, format!("cannot write: {e}")))
+}
+
+/// Writes a model's closed surface x_i (in world units) as a triangle OBJ.
+pub fn write_model_obj(
+    path: &Path,
+    tess: &Tessellation,
+    state: &ModelState,
+) -> Result<(), IoError> {
+    let mut x = Vec::new();
+    state.node_positions(tess, &mut x);
+    let comment = format!(
+        "deformable superquadric: {} nodes (k = {}), written by bevy_deformable_sq",
+        tess.node_count(),
+        tess.k
+    );
+    write_obj(path, &x, &tess.triangles(), &comment)
+}
+
+/// The parameters of a fitted model, as written by `--out-params`.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct FittedParams {
+    /// Translation c (data units).
+    pub translation: [f64; 3],
+    /// Rotation quaternion in the paper's order [s, v1, v2, v3].
+    pub rotation: [f64; 4],
+    /// Scale a (data units).
+    pub a: f64,
+    /// Aspect ratio a1.
+    pub a1: f64,
+    /// Aspect ratio a2.
+    pub a2: f64,
+    /// Aspect ratio a3.
+    pub a3: f64,
+    /// Squareness ε1.
+    pub e1: f64,
+    /// Squareness ε2.
+    pub e2: f64,
+    /// Node count k² + 2.
+    pub nodes: usize,
+    /// Rings and longitudes k.
+    pub k: usize,
+    /// RMS length of the local displacements (data units).
+    pub local_rms: f64,
+    /// Steps taken.
+    pub steps: u32,
+    /// Whether the fit came to rest before the step cap.
+    pub converged: bool,
+    /// Point-to-surface residuals, as fractions of the bounding-box diagonal.
+    pub residuals: Residuals,
+}
+
+impl FittedParams {
+    /// The parameters of a fit.
+    pub fn from_report(r: &FitReport) -> Self {
+        let s = &r.state;
+        let n = s.displacement.len().max(1) as f64;
+        Self {
+            translation: s.translation.to_array(),
+            rotation: crate::model::frame::quat_to_paper(s.rotation),
+            a: s.shape.a,
+            a1: s.shape.a1,
+            a2: s.shape.a2,
+            a3: s.shape.a3,
+            e1: s.shape.e1,
+            e2: s.shape.e2,
+            nodes: r.tess.node_count(),
+            k: r.tess.k,
+            local_rms: (s
+                .displacement
+                .iter()
+                .map(|d| d.length_squared())
+                .sum::<f64>()
+                / n)
+                .sqrt(),
+            steps: r.steps,
+            converged: r.converged,
+            residuals: r.residuals,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn temp(name: &str, contents: &[u8]) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("bdsq-io-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join(name);
+        std::fs::write(&p, contents).unwrap();
+        p
+    }
+
+    #[test]
+    fn obj_vertices_are_points_and_faces_are_ignored() {
+        let p = temp("a.obj", b"# c\nv 1 2 3\nv 4 5 6\nv 7 8 9.5\nf 1 2 3\n");
+        let pts = load_points(&p).unwrap();
+        assert_eq!(
+            pts,
+            vec![
+                DVec3::new(1.0, 2.0, 3.0),
+                DVec3::new(4.0, 5.0, 6.0),
+                DVec3::new(7.0, 8.0, 9.5)
+            ]
+        );
+    }
+
+    #[test]
+    fn obj_errors_name_the_line() {
+        let p = temp("bad.obj", b"v 1 2 3\nv 1 x 3\n");
+        let e = load_points(&p).unwrap_err();
+        assert!(
+            e.to_string().contains("bad.obj") && e.message.contains("line 2"),
+            "{e}"
+        );
+        let p = temp("nan.obj", b"v 1 2 3\nv 1 nan 3\n");
+        let e = load_points(&p).unwrap_err();
+        assert!(
+            e.message.contains("line 2") && e.message.contains("NaN"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn ply_ascii_and_binary_read_the_same_points() {
+        let ascii = b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n-1 0.5 2\n";
+        let p = temp("a.ply", ascii);
+        let a = load_points(&p).unwrap();
+        let mut bin = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty double x\nproperty double y\nproperty double z\nend_header\n".to_vec();
+        for v in [1.0f64, 2.0, 3.0, -1.0, 0.5, 2.0] {
+            bin.extend_from_slice(&v.to_le_bytes());
+        }
+        let b = load_points(&temp("b.ply", &bin)).unwrap();
+        assert_eq!(a, b);
+        assert_eq!(a[1], DVec3::new(-1.0, 0.5, 2.0));
+    }
+}

@@ -1,0 +1,17 @@
+//! # bevy_deformable_sq
+//!
+//! Terzopoulos & Metaxas's *deformable superquadrics* (IEEE PAMI 1991) for the Bevy engine.
+//!
+//! A deformable superquadric is a closed surface x = c + R (s + d): a superellipsoid s with a few
+//! **global** parameters (translation c, rotation R, scale a, aspect ratios a1..a3, squareness
+//! ε1, ε2) plus a **local** displacement d at every node of a finite-element membrane. Forces from
+//! data act through first-order Lagrangian equations of motion, C q̇ + K q = f_q, integrated by
+//! explicit Euler until the model comes to rest fitted to the data.
+//!
+//! * [`model`] — the paper's mathematics, pure and tested (no ECS types).
+//! * [`io`] — reading point clouds (OBJ, PLY) and writing meshes and parameters.
+//! * [`synthetic`] — deterministic test shapes: the paper's egg and mug, sampled superquadrics.
+
+pub mod io;
+pub mod model;
+pub mod synthetic;

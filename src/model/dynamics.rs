@@ -1,0 +1,796 @@
+//! First-order Lagrangian dynamics C q̇ + K q = f_q (eq. 14) integrated by explicit Euler (eq. 15).
+//!
+//! # State
+//! q = (q_c, q_θ, q_s, q_d): translation c, unit quaternion [s, v], the superquadric parameters
+//! (a, a1, a2, a3, ε1, ε2) and one displacement d_i per FEM node, all in [`ModelState`]. A node's
+//! world position is x_i = c + R (s_i + d_i) (eqs. 2, 3).
+//!
+//! # Forces
+//! Every applied force reaches the model as a point force on the surface; [`NodalForces`] holds
+//! them spread to the nodes with the shape functions N_i (eq. 22), together with each node's
+//! *stiffness weight* κ_i: the spring constant of the forces acting there, Σ_p w_p N_i(u_p).
+//! The generalized forces (eq. 33) are then sums over nodes:
+//! f_c = Σ F_i, f_θ = Σ B_iᵀ F_i = Gᵀ Σ p_i × RᵀF_i, f_s = Σ J_iᵀ RᵀF_i, f_d,i = RᵀF_i.
+//!
+//! # Damping: the choice that makes motion independent of tessellation and data count
+//! The paper's C is γ ∫ LᵀL du (eq. 28) with a damping density γ. We keep that form but take the
+//! integral over the points where forces act, weighted by their stiffness, and split it in two blocks:
+//!
+//! * **Global block** (13 × 13): C_g = γ_g (Σ_i κ_i L_iᵀ L_i + λ diag(·) + ρ κ̄ D), with
+//!   L_i = [I, B_i, R J_i] (eq. 11). Both C_g and f_g are sums over the same force points, so
+//!   C_g⁻¹ f_g — and with it the motion — does not change when the points are duplicated or the
+//!   surface is tessellated more finely. For range springs (f = w (r − x)) the step
+//!   Δt C_g⁻¹ f_g is a damped Gauss–Newton (Levenberg–Marquardt) step on the spring energy with
+//!   step fraction Δt/γ_g. λ (Marquardt) and ρ (a ridge scaled to the model size ℓ = a through
+//!   D = diag(1, ℓ², 1, ℓ²) per column kind) keep C_g invertible along the two gauge
+//!   directions: the quaternion's length (G q_θ = 0) and a·a_i's redundancy.
+//! * **Local block** (diagonal, lumped): C_d,i = γ_d A_i with A_i = ∫ N_i du the nodal area in
+//!   material coordinates. K q is the discretisation of −w1 Δd + w0 d times A_i, and range springs
+//!   give each of the m points the weight β |Ω| / m (see `forces::range`), a force density that
+//!   does not depend on m; so q̇_d approximates the same continuous flow for every k and m.
+//!
+//! # Stability
+//! The local update is explicit Euler on d. It is stable when Δt < Δt_crit = 2 γ_d / max_i
+//! ((Σ_j |K_ij| + κ_i) / A_i) (Gershgorin bound on the largest eigenvalue of C_d⁻¹(K + κ)).
+//! [`step`] checks the bound each step and sub-steps the local update, with the data springs
+//! linearised about the start of the step (exact for springs attached to nodes), instead of
+//! blowing up; beyond [`MAX_SUBSTEPS`] it clamps the step and says so in the [`StepReport`].
+//! The global update is limited to a trust region (a quarter of the model size, a quarter radian,
+//! a quarter of each aspect and exponent per step).
+
+use super::fem::{ElementPoint, Tessellation};
+use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
+use super::linalg::cholesky_solve;
+use super::superquadric::{NUM_SHAPE, SuperquadricParams, jacobian, shape};
+use bevy::math::{DMat3, DQuat, DVec3};
+
+/// Number of global degrees of freedom: q_c (3) + q_θ (4) + q_s (6).
+pub const NUM_GLOBAL: usize = 13;
+/// Most local sub-steps one [`step`] takes before it clamps Δt.
+pub const MAX_SUBSTEPS: u32 = 64;
+
+/// The full state q of one deformable superquadric.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelState {
+    /// q_c: the model frame's origin c in world space.
+    pub translation: DVec3,
+    /// q_θ: the model frame's orientation as a unit quaternion.
+    pub rotation: DQuat,
+    /// q_s: the global deformation parameters.
+    pub shape: SuperquadricParams,
+    /// q_d: the local displacement d_i of every node, in the model frame.
+    pub displacement: Vec<DVec3>,
+}
+
+impl ModelState {
+    /// A model with zero local displacement on `tess`.
+    pub fn new(
+        tess: &Tessellation,
+        translation: DVec3,
+        rotation: DQuat,
+        shape: SuperquadricParams,
+    ) -> Self {
+        Self {
+            translation,
+            rotation,
+            shape,
+            displacement: vec![DVec3::ZERO; tess.node_count()],
+        }
+    }
+
+    /// True when every coordinate is finite.
+    pub fn is_finite(&self) -> bool {
+        self.translation.is_finite()
+            && self.rotation.is_finite()
+            && self.shape.is_finite()
+            && self.displacement.iter().all(|d| d.is_finite())
+    }
+
+    /// Model-frame positions p_i = s_i + d_i of every node (eq. 3).
+    pub fn model_points(&self, tess: &Tessellation, out: &mut Vec<DVec3>) {
+        out.clear();
+        out.extend(
+            tess.trig
+                .iter()
+                .zip(&self.displacement)
+                .map(|(t, d)| shape(&self.shape, t) + *d),
+        );
+    }
+
+    /// World positions x_i = c + R p_i of every node (eq. 2).
+    pub fn node_positions(&self, tess: &Tessellation, out: &mut Vec<DVec3>) {
+        let r = rotation_matrix(self.rotation);
+        self.model_points(tess, out);
+        for p in out.iter_mut() {
+            *p = self.translation + r * *p;
+        }
+    }
+
+    /// World positions of the global shape alone, x_i = c + R s_i (the superquadric without d).
+    pub fn reference_positions(&self, tess: &Tessellation) -> Vec<DVec3> {
+        let r = rotation_matrix(self.rotation);
+        tess.trig
+            .iter()
+            .map(|t| self.translation + r * shape(&self.shape, t))
+            .collect()
+    }
+
+    /// The world position at a point inside an element: Σ N_i x_i (eq. 22).
+    pub fn position_at(&self, node_x: &[DVec3], at: &ElementPoint) -> DVec3 {
+        at.interpolate(|n| node_x[n])
+    }
+}
+
+/// Point forces spread to the nodes, with the stiffness weight κ_i of the springs among them.
+///
+/// `force`/`stiffness` act on every degree of freedom. `shape_force`/`shape_stiffness` act on the
+/// global DOFs (c, θ, q_s) only: forces that should place and shape the superquadric but not bend
+/// the membrane, such as the weak model-to-data springs of `forces::range`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct NodalForces {
+    /// World-space force F_i on each node.
+    pub force: Vec<DVec3>,
+    /// Stiffness weight κ_i ≥ 0 of each node (0 where no spring acts).
+    pub stiffness: Vec<f64>,
+    /// World-space force on each node that acts on the global DOFs only.
+    pub shape_force: Vec<DVec3>,
+    /// Stiffness weight of the springs in `shape_force`.
+    pub shape_stiffness: Vec<f64>,
+}
+
+impl NodalForces {
+    /// Zero forces on `n` nodes.
+    pub fn new(n: usize) -> Self {
+        let mut f = Self::default();
+        f.clear(n);
+        f
+    }
+
+    /// Resets to zero forces on `n` nodes, keeping the allocation.
+    pub fn clear(&mut self, n: usize) {
+        for v in [&mut self.force, &mut self.shape_force] {
+            v.clear();
+            v.resize(n, DVec3::ZERO);
+        }
+        for v in [&mut self.stiffness, &mut self.shape_stiffness] {
+            v.clear();
+            v.resize(n, 0.0);
+        }
+    }
+
+    /// Adds a world force `f` acting at a point inside an element, spread as f_i = N_i f (eq. 22),
+    /// with spring stiffness `kappa` spread the same way.
+    pub fn add(&mut self, at: &ElementPoint, f: DVec3, kappa: f64) {
+        for i in 0..4 {
+            let w = at.weights[i];
+            if w != 0.0 {
+                let n = at.nodes[i] as usize;
+                self.force[n] += w * f;
+                self.stiffness[n] += w * kappa;
+            }
+        }
+    }
+}
+
+/// Which degrees of freedom move. Frozen ones keep their value (the pestle experiment fixes ε).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FreeDofs {
+    /// q_c moves.
+    pub translation: bool,
+    /// q_θ moves.
+    pub rotation: bool,
+    /// Each of (a, a1, a2, a3, ε1, ε2) moves.
+    pub shape: [bool; NUM_SHAPE],
+    /// q_d moves (false: a pure superquadric, "global only").
+    pub local: bool,
+}
+
+impl Default for FreeDofs {
+    fn default() -> Self {
+        Self {
+            translation: true,
+            rotation: true,
+            shape: [true; NUM_SHAPE],
+            local: true,
+        }
+    }
+}
+
+/// Physical and numerical parameters of the first-order dynamics.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DynamicsParams {
+    /// Membrane stiffness w0 on |d|² (eq. 13).
+    pub w0: f64,
+    /// Membrane stiffness w1 on |∂d/∂u|² + |∂d/∂v|² (eq. 13).
+    pub w1: f64,
+    /// Time step Δt (eq. 15).
+    pub dt: f64,
+    /// Global damping density γ_g; Δt/γ_g is the Gauss–Newton step fraction.
+    pub gamma_global: f64,
+    /// Local damping density γ_d.
+    pub gamma_local: f64,
+    /// Marquardt factor λ added to the diagonal of the global damping block.
+    pub marquardt: f64,
+    /// Ridge ρ that keeps the global damping block invertible when few forces act.
+    pub ridge: f64,
+    /// Which degrees of freedom move.
+    pub free: FreeDofs,
+}
+
+impl Default for DynamicsParams {
+    /// w0 = 1e-3, w1 = 0.1 (the doll experiment's values), Δt = 0.05, γ_g = 0.1 (so the global
+    /// step is half a Gauss–Newton step), γ_d = 1.
+    fn default() -> Self {
+        Self {
+            w0: 1e-3,
+            w1: 0.1,
+            dt: 0.05,
+            gamma_global: 0.1,
+            gamma_local: 1.0,
+            marquardt: 1e-3,
+            ridge: 1e-6,
+            free: FreeDofs::default(),
+        }
+    }
+}
+
+/// What one [`step`] did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StepReport {
+    /// Local sub-steps taken (1 when Δt is within the stability bound).
+    pub substeps: u32,
+    /// The stability bound Δt_crit of the local update this step (∞ when nothing is stiff).
+    pub dt_critical: f64,
+    /// True when Δt was beyond [`MAX_SUBSTEPS`] × Δt_crit and was clamped.
+    pub clamped: bool,
+    /// True when the global increment was cut back to the trust region.
+    pub trust_limited: bool,
+}
+
+/// Why a step was refused; the state is left unchanged.
+#[derive(Clone, Debug, PartialEq)]
+pub enum StepError {
+    /// A force or the computed update was not finite; names what.
+    NonFinite(&'static str),
+}
+
+impl std::fmt::Display for StepError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            StepError::NonFinite(what) => write!(f, "non-finite {what}; the step was not applied"),
+        }
+    }
+}
+
+impl std::error::Error for StepError {}
+
+/// Reusable buffers and caches for [`step`], so a step allocates nothing.
+#[derive(Clone, Debug, Default)]
+pub struct Workspace {
+    points: Vec<DVec3>,
+    kd: Vec<DVec3>,
+    local_force: Vec<DVec3>,
+    new_d: Vec<DVec3>,
+    row_bounds: Vec<f64>,
+    row_bounds_key: Option<(f64, f64, usize)>,
+}
+
+impl Workspace {
+    fn row_bounds(&mut self, tess: &Tessellation, w0: f64, w1: f64) -> &[f64] {
+        let key = (w0, w1, tess.node_count());
+        if self.row_bounds_key != Some(key) {
+            self.row_bounds = tess.stiffness_row_bounds(w0, w1);
+            self.row_bounds_key = Some(key);
+        }
+        &self.row_bounds
+    }
+}
+
+/// The generalized forces of eq. (33) for the 13 global DOFs, in the order (c, θ, s).
+pub fn generalized_global_forces(
+    tess: &Tessellation,
+    state: &ModelState,
+    forces: &NodalForces,
+) -> [f64; NUM_GLOBAL] {
+    let mut ws = Workspace::default();
+    state.model_points(tess, &mut ws.points);
+    global_system(tess, state, &ws.points, forces).1
+}
+
+/// f_d,i = Sᵀ Rᵀ f: for nodal basis functions the local generalized force is RᵀF_i (eq. 33).
+pub fn generalized_local_forces(state: &ModelState, forces: &NodalForces) -> Vec<DVec3> {
+    let rt = rotation_matrix(state.rotation).transpose();
+    forces.force.iter().map(|f| rt * *f).collect()
+}
+
+/// Accumulates the stiffness-weighted Gram matrix Σ κ_i L_iᵀ L_i and the generalized forces
+/// Σ L_iᵀ F_i, using the block structure of L = [I, −R p̃ G, R J] so each node costs ~250 flops.
+fn global_system(
+    tess: &Tessellation,
+    state: &ModelState,
+    points: &[DVec3],
+    forces: &NodalForces,
+) -> ([[f64; NUM_GLOBAL]; NUM_GLOBAL], [f64; NUM_GLOBAL], f64) {
+    let r = rotation_matrix(state.rotation);
+    let rt = r.transpose();
+    let g = g_matrix(state.rotation);
+    let mut kappa_sum = 0.0;
+    let mut kp = DVec3::ZERO; // Σ κ p
+    let mut inertia = DMat3::ZERO; // Σ κ (|p|² I − p pᵀ)
+    let mut k_j = [DVec3::ZERO; NUM_SHAPE]; // Σ κ J_b
+    let mut k_pj = [DVec3::ZERO; NUM_SHAPE]; // Σ κ p × J_b
+    let mut k_jj = [[0.0; NUM_SHAPE]; NUM_SHAPE]; // Σ κ J_a · J_b
+    let mut f_c = DVec3::ZERO;
+    let mut torque = DVec3::ZERO; // Σ p × RᵀF (model frame)
+    let mut f_s = [0.0; NUM_SHAPE];
+    for i in 0..forces.force.len() {
+        let f = forces.force[i] + forces.shape_force[i];
+        let kappa = forces.stiffness[i] + forces.shape_stiffness[i];
+        if kappa == 0.0 && f == DVec3::ZERO {
+            continue;
+        }
+        let p = points[i];
+        let jac = jacobian(&state.shape, &tess.trig[i]);
+        let fm = rt * f;
+        f_c += f;
+        torque += p.cross(fm);
+        for b in 0..NUM_SHAPE {
+            f_s[b] += jac[b].dot(fm);
+        }
+        if kappa != 0.0 {
+            kappa_sum += kappa;
+            kp += kappa * p;
+            inertia +=
+                kappa * (DMat3::from_diagonal(DVec3::splat(p.length_squared())) - outer(p, p));
+            for a in 0..NUM_SHAPE {
+                k_j[a] += kappa * jac[a];
+                k_pj[a] += kappa * p.cross(jac[a]);
+                for b in a..NUM_SHAPE {
+                    k_jj[a][b] += kappa * jac[a].dot(jac[b]);
+                }
+            }
+        }
+    }
+    let mut m = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
+    // c–c
+    for (k, row) in m.iter_mut().enumerate().take(3) {
+        row[k] = kappa_sum;
+    }
+    // c–θ: column j is R (G_j × Σκp); c–s: column b is R Σκ J_b
+    for j in 0..4 {
+        let col = r * g[j].cross(kp);
+        for k in 0..3 {
+            m[k][3 + j] = col[k];
+        }
+    }
+    for b in 0..NUM_SHAPE {
+        let col = r * k_j[b];
+        for k in 0..3 {
+            m[k][7 + b] = col[k];
+        }
+    }
+    // θ–θ: G_aᵀ I G_b; θ–s: G_a · Σκ p × J_b
+    for a in 0..4 {
+        for b in a..4 {
+            m[3 + a][3 + b] = g[a].dot(inertia * g[b]);
+        }
+        for b in 0..NUM_SHAPE {
+            m[3 + a][7 + b] = g[a].dot(k_pj[b]);
+        }
+    }
+    for a in 0..NUM_SHAPE {
+        for b in a..NUM_SHAPE {
+            m[7 + a][7 + b] = k_jj[a][b];
+        }
+    }
+    for i in 0..NUM_GLOBAL {
+        for j in 0..i {
+            m[i][j] = m[j][i];
+        }
+    }
+    let mut f = [0.0; NUM_GLOBAL];
+    f[..3].copy_from_slice(&f_c.to_array());
+    for j in 0..4 {
+        f[3 + j] = g[j].dot(torque);
+    }
+    f[7..].copy_from_slice(&f_s);
+    (m, f, kappa_sum)
+}
+
+fn outer(a: DVec3, b: DVec3) -> DMat3 {
+    DMat3::from_cols(a * b.x, a * b.y, a * b.z)
+}
+
+/// The global block of one Euler step: δq_g = Δt C_g⁻¹ f_g (eq. 15), frozen DOFs removed.
+fn global_increment(
+    tess: &Tessellation,
+    state: &ModelState,
+    points: &[DVec3],
+    forces: &NodalForces,
+    params: &DynamicsParams,
+) -> Result<[f64; NUM_GLOBAL], StepError> {
+    let (mut c, mut f, kappa_sum) = global_system(tess, state, points, forces);
+    let ell = state.shape.a.max(1e-12);
+    let scale = [
+        1.0,
+        1.0,
+        1.0,
+        ell * ell,
+        ell * ell,
+        ell * ell,
+        ell * ell,
+        1.0,
+        ell * ell,
+        ell * ell,
+        ell * ell,
+        ell * ell,
+        ell * ell,
+    ];
+    let weight = kappa_sum
+        .max(f.iter().map(|x| x.abs()).fold(0.0, f64::max) / ell)
+        .max(1e-300);
+    let free = params.free;
+    for i in 0..NUM_GLOBAL {
+        let is_free = match i {
+            0..=2 => free.translation,
+            3..=6 => free.rotation,
+            _ => free.shape[i - 7],
+        };
+        c[i][i] += params.marquardt * c[i][i] + params.ridge * weight * scale[i];
+        if !is_free {
+            for j in 0..NUM_GLOBAL {
+                c[i][j] = 0.0;
+                c[j][i] = 0.0;
+            }
+            c[i][i] = 1.0;
+            f[i] = 0.0;
+        }
+        for row in c.iter_mut() {
+            row[i] *= params.gamma_global;
+        }
+    }
+    if f.iter().all(|&x| x == 0.0) {
+        return Ok([0.0; NUM_GLOBAL]);
+    }
+    if !f.iter().all(|x| x.is_finite()) {
+        return Err(StepError::NonFinite("generalized force f_q"));
+    }
+    let x = cholesky_solve(&c, &f).ok_or(StepError::NonFinite("global damping matrix C_g"))?;
+    Ok(x.map(|v| v * params.dt))
+}
+
+/// Cuts a global increment back to the trust region; returns true when it did.
+fn limit_global(delta: &mut [f64; NUM_GLOBAL], state: &ModelState) -> bool {
+    const TRUST: f64 = 0.25;
+    let ell = state.shape.a.max(1e-12);
+    let dc = DVec3::new(delta[0], delta[1], delta[2]).length() / ell;
+    let dq = delta[3..7].iter().map(|x| x * x).sum::<f64>().sqrt() * 2.0; // ≈ rotation angle
+    let da = (delta[7] / ell).abs();
+    let rest = delta[8..].iter().fold(0.0_f64, |m, x| m.max(x.abs()));
+    let worst = dc.max(dq).max(da).max(rest);
+    if worst > TRUST {
+        let s = TRUST / worst;
+        delta.iter_mut().for_each(|x| *x *= s);
+        true
+    } else {
+        false
+    }
+}
+
+/// One explicit Euler step of eq. (15), q ← q + Δt C⁻¹ (f_q − K q), with the damping of the
+/// module docs. Renormalises the quaternion, moves the largest a_i into a and clamps a_i, ε to
+/// their bounds. On error the state is untouched: a step never writes a non-finite value.
+pub fn step(
+    tess: &Tessellation,
+    state: &mut ModelState,
+    forces: &NodalForces,
+    params: &DynamicsParams,
+    ws: &mut Workspace,
+) -> Result<StepReport, StepError> {
+    let n = tess.node_count();
+    assert!(
+        forces.force.len() == n && forces.shape_force.len() == n,
+        "NodalForces sized for another tessellation"
+    );
+    let mut report = StepReport {
+        substeps: 0,
+        dt_critical: f64::INFINITY,
+        clamped: false,
+        trust_limited: false,
+    };
+    let mut points = std::mem::take(&mut ws.points);
+    state.model_points(tess, &mut points);
+    let delta = global_increment(tess, state, &points, forces, params);
+    ws.points = points;
+    let mut delta = delta?;
+    report.trust_limited = limit_global(&mut delta, state);
+
+    // Local block, explicit Euler with the checked stability bound.
+    ws.new_d.clear();
+    ws.new_d.extend_from_slice(&state.displacement);
+    if params.free.local {
+        let rt = rotation_matrix(state.rotation).transpose();
+        ws.local_force.clear();
+        ws.local_force.extend(forces.force.iter().map(|f| rt * *f));
+        let (w0, w1, gamma) = (params.w0, params.w1, params.gamma_local);
+        let rows = ws.row_bounds(tess, w0, w1).to_vec();
+        let lambda_max = (0..n)
+            .map(|i| (rows[i] + forces.stiffness[i]) / (gamma * tess.node_area[i]))
+            .fold(0.0_f64, f64::max);
+        report.dt_critical = if lambda_max > 0.0 {
+            2.0 / lambda_max
+        } else {
+            f64::INFINITY
+        };
+        let safe = 0.9 * report.dt_critical;
+        let mut substeps = if params.dt <= safe {
+            1
+        } else {
+            (params.dt / safe).ceil() as u32
+        };
+        let mut h = params.dt / substeps as f64;
+        if substeps > MAX_SUBSTEPS {
+            substeps = MAX_SUBSTEPS;
+            h = safe;
+            report.clamped = true;
+        }
+        report.substeps = substeps;
+        for _ in 0..substeps {
+            ws.kd.clear();
+            ws.kd.resize(n, DVec3::ZERO);
+            tess.apply_stiffness(w0, w1, &ws.new_d, &mut ws.kd);
+            for i in 0..n {
+                // Data springs linearised about the start of the step: F(d) = F(d⁰) − κ (d − d⁰).
+                let spring = forces.stiffness[i] * (ws.new_d[i] - state.displacement[i]);
+                let rate = (ws.local_force[i] - spring - ws.kd[i]) / (gamma * tess.node_area[i]);
+                ws.new_d[i] += h * rate;
+            }
+        }
+    }
+
+    if delta.iter().all(|&x| x == 0.0) {
+        // No global force: the global DOFs stay exactly where they are (no renormalisation drift).
+        let displacement = std::mem::take(&mut ws.new_d);
+        if !displacement.iter().all(|d| d.is_finite()) {
+            ws.new_d = displacement;
+            return Err(StepError::NonFinite(
+                "local displacement after the Euler step",
+            ));
+        }
+        ws.new_d = std::mem::replace(&mut state.displacement, displacement);
+        return Ok(report);
+    }
+    let q = quat_to_paper(state.rotation);
+    let rotation = quat_from_paper(std::array::from_fn(|j| q[j] + delta[3 + j]));
+    if !(rotation.length() > 0.0) {
+        return Err(StepError::NonFinite("rotation quaternion"));
+    }
+    let shape_q = state.shape.to_array();
+    let new = ModelState {
+        translation: state.translation + DVec3::new(delta[0], delta[1], delta[2]),
+        rotation: rotation.normalize(),
+        shape: SuperquadricParams::from_array(std::array::from_fn(|j| shape_q[j] + delta[7 + j]))
+            .normalized(),
+        displacement: std::mem::take(&mut ws.new_d),
+    };
+    if !new.is_finite() {
+        ws.new_d = new.displacement;
+        return Err(StepError::NonFinite("state after the Euler step"));
+    }
+    ws.new_d = std::mem::take(&mut state.displacement);
+    *state = new;
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::frame::quat_from_paper;
+
+    fn test_state(tess: &Tessellation) -> ModelState {
+        let mut s = ModelState::new(
+            tess,
+            DVec3::new(0.3, -0.2, 0.5),
+            DQuat::from_axis_angle(DVec3::new(0.2, 1.0, -0.4).normalize(), 0.7),
+            SuperquadricParams {
+                a: 1.3,
+                a1: 0.8,
+                a2: 1.0,
+                a3: 0.6,
+                e1: 0.8,
+                e2: 1.2,
+            },
+        );
+        for (i, d) in s.displacement.iter_mut().enumerate() {
+            *d = 0.01
+                * DVec3::new(
+                    (i as f64 * 0.7).sin(),
+                    (i as f64 * 1.3).cos(),
+                    (i as f64 * 0.4).sin(),
+                );
+        }
+        s
+    }
+
+    fn test_forces(tess: &Tessellation) -> NodalForces {
+        let mut f = NodalForces::new(tess.node_count());
+        for (i, at) in [
+            (0.3, 0.4),
+            (-0.9, 2.5),
+            (1.2, -2.0),
+            (1.5, 0.1),
+            (-1.5, 1.0),
+        ]
+        .iter()
+        .enumerate()
+        {
+            let p = tess.locate(at.0, at.1);
+            f.add(&p, DVec3::new(1.0 - i as f64, 0.5 * i as f64, 0.3), 0.0);
+        }
+        f
+    }
+
+    /// Potential of constant point forces: V(q) = −Σ_p f_p · x_p(q). Its negative gradient is f_q.
+    fn potential(tess: &Tessellation, state: &ModelState, forces: &NodalForces) -> f64 {
+        let mut x = Vec::new();
+        state.node_positions(tess, &mut x);
+        -forces
+            .force
+            .iter()
+            .zip(&x)
+            .map(|(f, x)| f.dot(*x))
+            .sum::<f64>()
+    }
+
+    #[test]
+    fn global_generalized_forces_match_central_differences() {
+        let tess = Tessellation::new(6);
+        let state = test_state(&tess);
+        let forces = test_forces(&tess);
+        let fq = generalized_global_forces(&tess, &state, &forces);
+        let h = 1e-6;
+        for j in 0..NUM_GLOBAL {
+            let perturbed = |sign: f64| {
+                let mut s = state.clone();
+                match j {
+                    0..=2 => s.translation[j] += sign * h,
+                    3..=6 => {
+                        let mut q = quat_to_paper(s.rotation);
+                        q[j - 3] += sign * h;
+                        s.rotation = quat_from_paper(q).normalize();
+                    }
+                    _ => {
+                        let mut a = s.shape.to_array();
+                        a[j - 7] += sign * h;
+                        s.shape = SuperquadricParams::from_array(a);
+                    }
+                }
+                potential(&tess, &s, &forces)
+            };
+            let fd = -(perturbed(1.0) - perturbed(-1.0)) / (2.0 * h);
+            assert!(
+                (fd - fq[j]).abs() < 1e-6 * (1.0 + fd.abs()),
+                "dof {j}: f_q {} vs fd {fd}",
+                fq[j]
+            );
+        }
+    }
+
+    #[test]
+    fn local_generalized_forces_match_central_differences_inside_elements() {
+        let tess = Tessellation::new(6);
+        let state = test_state(&tess);
+        let forces = test_forces(&tess);
+        let fd_local = generalized_local_forces(&state, &forces);
+        let h = 1e-6;
+        for node in [0usize, 5, 17, tess.north_pole(), 30] {
+            for c in 0..3 {
+                let v = |sign: f64| {
+                    let mut s = state.clone();
+                    s.displacement[node][c] += sign * h;
+                    potential(&tess, &s, &forces)
+                };
+                let fd = -(v(1.0) - v(-1.0)) / (2.0 * h);
+                assert!(
+                    (fd - fd_local[node][c]).abs() < 1e-7,
+                    "node {node} comp {c}: {} vs {fd}",
+                    fd_local[node][c]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn gram_matrix_equals_explicit_lt_l_sum() {
+        // Σ κ L_iᵀ L_i through the block formulas equals the sum built from explicit columns.
+        let tess = Tessellation::new(5);
+        let state = test_state(&tess);
+        let mut forces = NodalForces::new(tess.node_count());
+        for i in 0..tess.node_count() {
+            forces.stiffness[i] = 0.1 + (i % 3) as f64;
+        }
+        let mut pts = Vec::new();
+        state.model_points(&tess, &mut pts);
+        let (m, _, _) = global_system(&tess, &state, &pts, &forces);
+        let r = rotation_matrix(state.rotation);
+        let mut explicit = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
+        for i in 0..tess.node_count() {
+            let b = crate::model::frame::b_matrix(&r, state.rotation, pts[i]);
+            let jac = jacobian(&state.shape, &tess.trig[i]);
+            let cols: Vec<DVec3> = [DVec3::X, DVec3::Y, DVec3::Z]
+                .into_iter()
+                .chain(b)
+                .chain(jac.iter().map(|c| r * *c))
+                .collect();
+            for a in 0..NUM_GLOBAL {
+                for bb in 0..NUM_GLOBAL {
+                    explicit[a][bb] += forces.stiffness[i] * cols[a].dot(cols[bb]);
+                }
+            }
+        }
+        for a in 0..NUM_GLOBAL {
+            for b in 0..NUM_GLOBAL {
+                assert!(
+                    (m[a][b] - explicit[a][b]).abs() < 1e-9 * (1.0 + explicit[a][b].abs()),
+                    "({a},{b})"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn free_model_relaxes_with_falling_energy_and_unit_quaternion() {
+        let tess = Tessellation::new(12);
+        let mut state = test_state(&tess);
+        for (i, d) in state.displacement.iter_mut().enumerate() {
+            *d = 0.2
+                * DVec3::new(
+                    (i as f64 * 2.7).sin(),
+                    (i as f64 * 0.3).cos(),
+                    (i as f64).sin(),
+                );
+        }
+        // Δt far beyond the explicit bound: the step must sub-step, not explode.
+        let params = DynamicsParams {
+            dt: 5.0,
+            w0: 0.01,
+            w1: 0.5,
+            ..Default::default()
+        };
+        let forces = NodalForces::new(tess.node_count());
+        let mut ws = Workspace::default();
+        let mut energy = tess.strain_energy(params.w0, params.w1, &state.displacement);
+        let before = state.clone();
+        for _ in 0..200 {
+            let report = step(&tess, &mut state, &forces, &params, &mut ws).expect("finite");
+            assert!(report.substeps > 1);
+            let e = tess.strain_energy(params.w0, params.w1, &state.displacement);
+            assert!(e <= energy * (1.0 + 1e-12), "energy rose: {energy} -> {e}");
+            energy = e;
+            assert!((state.rotation.length() - 1.0).abs() < 1e-12);
+        }
+        assert!(energy < 1e-3 * tess.strain_energy(params.w0, params.w1, &before.displacement));
+        // No external force: the global DOFs do not move.
+        assert_eq!(state.translation, before.translation);
+        assert_eq!(state.rotation, before.rotation);
+    }
+
+    #[test]
+    fn non_finite_force_leaves_state_untouched() {
+        let tess = Tessellation::new(5);
+        let mut state = test_state(&tess);
+        let before = state.clone();
+        let mut forces = NodalForces::new(tess.node_count());
+        forces.force[3] = DVec3::new(f64::NAN, 0.0, 0.0);
+        forces.stiffness[3] = 1.0;
+        let err = step(
+            &tess,
+            &mut state,
+            &forces,
+            &DynamicsParams::default(),
+            &mut Workspace::default(),
+        );
+        assert!(err.is_err());
+        assert_eq!(state, before);
+    }
+}

@@ -1,0 +1,679 @@
+//! The finite-element discretisation of the local displacement d over material coordinates
+//! u = (u, v) (section IV and Appendix B).
+//!
+//! **Tessellation** (Fig. 9): k latitude rings × k longitudes plus the two poles, k² + 2 nodes — the
+//! paper's 963 / 1683 / 2603 / 5043 nodes are k = 31 / 41 / 51 / 71. Rings sit at
+//! u_i = −π/2 + (i + 1) h_u with h_u = π/(k + 1), longitudes at v_j = −π + j h_v with h_v = 2π/k
+//! (periodic). Node 0 is the south pole, node 1 + i k + j is ring i, longitude j, and node k² + 1 is
+//! the north pole.
+//!
+//! **Elements**: bilinear quadrilaterals between rings (eqs. 48–52, 2×2 Gauss–Legendre) and, at the
+//! two caps, the paper's right linear triangles (eqs. 53–68, Radau quadrature) in which the pole
+//! takes the v of one of the other nodes.
+//!
+//! **Stiffness** (eqs. 13, 40–47): per displacement component, K^j = ∫ w1 ∇N ∇Nᵀ + w0 N Nᵀ du.
+//! The paper's γ_i = [∂N_i/∂u, ∂N_i/∂v, 1]ᵀ after eq. (45) should read [.., .., N_i]ᵀ — the third
+//! strain component is d_k = Σ N_i q_i — and is implemented so. K_dd is never assembled:
+//! [`Tessellation::apply_stiffness`] adds K q element by element, as section IV prescribes.
+
+use super::superquadric::Trig;
+use bevy::math::DVec3;
+use std::f64::consts::{FRAC_PI_2, PI, TAU};
+
+/// Element matrices of one element type: the gradient part ∫∇N_i·∇N_j du and the value part
+/// ∫N_i N_j du, so that K^j = w1·grad + w0·mass for any scalar stiffness pair (w0, w1).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ElementMatrices<const N: usize> {
+    /// ∫ ∇N_i · ∇N_j du dv over the element (the w1 part).
+    pub grad: [[f64; N]; N],
+    /// ∫ N_i N_j du dv over the element (the w0 part).
+    pub mass: [[f64; N]; N],
+}
+
+impl<const N: usize> ElementMatrices<N> {
+    /// The element stiffness w1·grad + w0·mass (eq. 47, one displacement component).
+    pub fn stiffness(&self, w0: f64, w1: f64) -> [[f64; N]; N] {
+        let mut k = [[0.0; N]; N];
+        for (i, row) in k.iter_mut().enumerate() {
+            for (j, kij) in row.iter_mut().enumerate() {
+                *kij = w1 * self.grad[i][j] + w0 * self.mass[i][j];
+            }
+        }
+        k
+    }
+}
+
+/// 2-point Gauss–Legendre abscissae on [−1, 1] (weights 1): exact for cubics in each direction,
+/// hence for every bilinear × bilinear product in the quadrilateral element.
+pub const GAUSS_LEGENDRE_2: [f64; 2] = [-0.577_350_269_189_625_8, 0.577_350_269_189_625_8];
+
+/// 3-point Gauss–Legendre rule on [0, 1] as (abscissa, weight).
+pub fn gauss_legendre_3_unit() -> [(f64, f64); 3] {
+    let r = (0.6_f64).sqrt();
+    [
+        (0.5 * (1.0 - r), 5.0 / 18.0),
+        (0.5, 8.0 / 18.0),
+        (0.5 * (1.0 + r), 5.0 / 18.0),
+    ]
+}
+
+/// 3-point left Gauss–Radau rule on [0, 1] as (abscissa, weight): it includes the end point 0 and
+/// is exact for polynomials of degree ≤ 4.
+pub fn gauss_radau_3_unit() -> [(f64, f64); 3] {
+    let s6 = 6.0_f64.sqrt();
+    [
+        (0.0, 1.0 / 9.0),
+        (0.5 * (1.0 + (1.0 - s6) / 5.0), (16.0 + s6) / 36.0),
+        (0.5 * (1.0 + (1.0 + s6) / 5.0), (16.0 - s6) / 36.0),
+    ]
+}
+
+/// Quadrature points (ξ, η, weight) on the reference triangle {ξ, η ≥ 0, ξ + η ≤ 1}, made by
+/// collapsing the unit square (ξ = s(1 − t), η = t, Jacobian 1 − t) with Gauss–Legendre in s and
+/// Gauss–Radau in t, whose end point t = 0 sits on the edge opposite the collapsed vertex. Exact for
+/// polynomials of total degree ≤ 3, which covers N_i N_j of the linear triangle.
+pub fn radau_triangle_rule() -> [(f64, f64, f64); 9] {
+    let mut out = [(0.0, 0.0, 0.0); 9];
+    let mut n = 0;
+    for (t, wt) in gauss_radau_3_unit() {
+        for (s, ws) in gauss_legendre_3_unit() {
+            out[n] = (s * (1.0 - t), t, ws * wt * (1.0 - t));
+            n += 1;
+        }
+    }
+    out
+}
+
+/// Element matrices of the bilinear quadrilateral of size a × b in (u, v) (eqs. 48–52), nodes in
+/// the order (ξ_i, η_i) = (−1, −1), (1, −1), (1, 1), (−1, 1), with ξ along u and η along v.
+pub fn quad_element(a: f64, b: f64) -> ElementMatrices<4> {
+    const XI: [f64; 4] = [-1.0, 1.0, 1.0, -1.0];
+    const ETA: [f64; 4] = [-1.0, -1.0, 1.0, 1.0];
+    let mut m = ElementMatrices {
+        grad: [[0.0; 4]; 4],
+        mass: [[0.0; 4]; 4],
+    };
+    let jac = a * b / 4.0; // eq. (52)
+    for &xi in &GAUSS_LEGENDRE_2 {
+        for &eta in &GAUSS_LEGENDRE_2 {
+            let n: [f64; 4] =
+                std::array::from_fn(|i| 0.25 * (1.0 + xi * XI[i]) * (1.0 + eta * ETA[i]));
+            // eqs. (50), (51)
+            let nu: [f64; 4] = std::array::from_fn(|i| XI[i] * (1.0 + eta * ETA[i]) / (2.0 * a));
+            let nv: [f64; 4] = std::array::from_fn(|i| (1.0 + xi * XI[i]) * ETA[i] / (2.0 * b));
+            for i in 0..4 {
+                for j in 0..4 {
+                    m.grad[i][j] += jac * (nu[i] * nu[j] + nv[i] * nv[j]);
+                    m.mass[i][j] += jac * n[i] * n[j];
+                }
+            }
+        }
+    }
+    m
+}
+
+/// Which polar cap a linear triangle belongs to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Cap {
+    /// u = +π/2: shape functions (53–55), N1 = 1 − ξ − η, N2 = ξ, N3 = η; node 2 is the pole.
+    North,
+    /// u = −π/2: shape functions (61–63), N1 = 1 − ξ, N2 = ξ − η, N3 = η; node 1 is the pole.
+    South,
+}
+
+/// Element matrices of a polar linear triangle of size a (along u) × b (along v) (eqs. 53–68),
+/// integrated with the Radau rule of [`radau_triangle_rule`].
+pub fn triangle_element(cap: Cap, a: f64, b: f64) -> ElementMatrices<3> {
+    // Shape functions and their constant (u, v) gradients, eqs. (58–59) and (66–67).
+    type ShapeFn = fn(f64, f64) -> [f64; 3];
+    let (shape, du, dv): (ShapeFn, [f64; 3], [f64; 3]) = match cap {
+        Cap::North => (
+            |x, e| [1.0 - x - e, x, e],
+            [-1.0 / a, 1.0 / a, 0.0],
+            [-1.0 / b, 0.0, 1.0 / b],
+        ),
+        Cap::South => (
+            |x, e| [1.0 - x, x - e, e],
+            [-1.0 / a, 1.0 / a, 0.0],
+            [0.0, -1.0 / b, 1.0 / b],
+        ),
+    };
+    let mut m = ElementMatrices {
+        grad: [[0.0; 3]; 3],
+        mass: [[0.0; 3]; 3],
+    };
+    for (p, q, w) in radau_triangle_rule() {
+        // The north element is the reference triangle itself (eq. 60). The south element
+        // (eq. 68, misprinted) is {0 ≤ η ≤ ξ ≤ 1}, the image of the reference triangle under
+        // (ξ, η) = (1 − p, q) with unit |Jacobian|; both have area ab/2.
+        let (xi, eta) = match cap {
+            Cap::North => (p, q),
+            Cap::South => (1.0 - p, q),
+        };
+        let n = shape(xi, eta);
+        let jac = a * b * w;
+        for i in 0..3 {
+            for j in 0..3 {
+                m.grad[i][j] += jac * (du[i] * du[j] + dv[i] * dv[j]);
+                m.mass[i][j] += jac * n[i] * n[j];
+            }
+        }
+    }
+    m
+}
+
+/// A point inside an element: up to four nodes and their shape-function weights N_i
+/// (unused slots have weight 0). Interpolates any nodal field: x(u) = Σ N_i x_i.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ElementPoint {
+    /// Node indices of the element (the triangle's third node repeated in the fourth slot).
+    pub nodes: [u32; 4],
+    /// Shape-function values N_i at the point; they sum to 1.
+    pub weights: [f64; 4],
+    /// ∂N_i/∂u at the point.
+    pub du: [f64; 4],
+    /// ∂N_i/∂v at the point.
+    pub dv: [f64; 4],
+}
+
+impl ElementPoint {
+    /// A point sitting exactly on one node.
+    pub fn at_node(node: u32) -> Self {
+        Self {
+            nodes: [node; 4],
+            weights: [1.0, 0.0, 0.0, 0.0],
+            du: [0.0; 4],
+            dv: [0.0; 4],
+        }
+    }
+
+    /// Σ N_i f(node_i) for a nodal field given by a lookup.
+    pub fn interpolate(&self, f: impl Fn(usize) -> DVec3) -> DVec3 {
+        (0..4)
+            .filter(|&i| self.weights[i] != 0.0)
+            .map(|i| self.weights[i] * f(self.nodes[i] as usize))
+            .sum()
+    }
+}
+
+/// The tessellated material domain: node coordinates, elements and their matrices.
+#[derive(Clone, Debug)]
+pub struct Tessellation {
+    /// Number of latitude rings and of longitudes.
+    pub k: usize,
+    /// Ring spacing h_u = π/(k + 1).
+    pub h_u: f64,
+    /// Longitude spacing h_v = 2π/k.
+    pub h_v: f64,
+    /// Material coordinates (u, v) of every node (the poles take v = 0).
+    pub uv: Vec<[f64; 2]>,
+    /// Trigonometric terms of every node, computed once (see [`Trig`]).
+    pub trig: Vec<Trig>,
+    /// Quadrilaterals, nodes ordered as in [`quad_element`].
+    pub quads: Vec<[u32; 4]>,
+    /// North-cap triangles (ring node, pole, next ring node), as in [`triangle_element`].
+    pub north: Vec<[u32; 3]>,
+    /// South-cap triangles (pole, ring node, next ring node), as in [`triangle_element`].
+    pub south: Vec<[u32; 3]>,
+    /// The shared matrices of every quadrilateral.
+    pub quad_matrices: ElementMatrices<4>,
+    /// The shared matrices of every north-cap triangle.
+    pub north_matrices: ElementMatrices<3>,
+    /// The shared matrices of every south-cap triangle.
+    pub south_matrices: ElementMatrices<3>,
+    /// Lumped nodal area A_i = ∫ N_i du (row sums of the mass matrices); Σ A_i is the area the
+    /// elements cover in (u, v).
+    pub node_area: Vec<f64>,
+}
+
+/// The smallest k accepted: 3 rings × 3 longitudes is the coarsest closed surface.
+pub const MIN_K: usize = 3;
+
+impl Tessellation {
+    /// Builds the k² + 2 node tessellation. `k` below [`MIN_K`] is raised to it.
+    pub fn new(k: usize) -> Self {
+        let k = k.max(MIN_K);
+        let h_u = PI / (k as f64 + 1.0);
+        let h_v = TAU / k as f64;
+        let ring = |i: usize, j: usize| (1 + i * k + (j % k)) as u32;
+        let north_pole = (k * k + 1) as u32;
+        let mut uv = Vec::with_capacity(k * k + 2);
+        uv.push([-FRAC_PI_2, 0.0]);
+        for i in 0..k {
+            for j in 0..k {
+                uv.push([-FRAC_PI_2 + (i as f64 + 1.0) * h_u, -PI + j as f64 * h_v]);
+            }
+        }
+        uv.push([FRAC_PI_2, 0.0]);
+        let trig = uv.iter().map(|&[u, v]| Trig::new(u, v)).collect();
+        let mut quads = Vec::with_capacity((k - 1) * k);
+        for i in 0..k - 1 {
+            for j in 0..k {
+                quads.push([
+                    ring(i, j),
+                    ring(i + 1, j),
+                    ring(i + 1, j + 1),
+                    ring(i, j + 1),
+                ]);
+            }
+        }
+        let north = (0..k)
+            .map(|j| [ring(k - 1, j), north_pole, ring(k - 1, j + 1)])
+            .collect();
+        let south = (0..k).map(|j| [0, ring(0, j), ring(0, j + 1)]).collect();
+        let mut t = Self {
+            k,
+            h_u,
+            h_v,
+            uv,
+            trig,
+            quads,
+            north,
+            south,
+            quad_matrices: quad_element(h_u, h_v),
+            north_matrices: triangle_element(Cap::North, h_u, h_v),
+            south_matrices: triangle_element(Cap::South, h_u, h_v),
+            node_area: Vec::new(),
+        };
+        let mut area = vec![0.0; t.node_count()];
+        t.for_each_element(|nodes, grad_mass| {
+            for (a, &n) in nodes.iter().enumerate() {
+                area[n as usize] += grad_mass.1[a].iter().sum::<f64>();
+            }
+        });
+        t.node_area = area;
+        t
+    }
+
+    /// k² + 2.
+    pub fn node_count(&self) -> usize {
+        self.uv.len()
+    }
+
+    /// Index of the north pole node.
+    pub fn north_pole(&self) -> usize {
+        self.k * self.k + 1
+    }
+
+    /// Visits every element with its node list and (grad, mass) matrices as row slices.
+    fn for_each_element(&self, mut visit: impl FnMut(&[u32], (&[&[f64]], &[&[f64]]))) {
+        let q = &self.quad_matrices;
+        let (qg, qm): ([&[f64]; 4], [&[f64]; 4]) = (
+            q.grad.each_ref().map(|r| &r[..]),
+            q.mass.each_ref().map(|r| &r[..]),
+        );
+        for e in &self.quads {
+            visit(e, (&qg, &qm));
+        }
+        for (tris, m) in [
+            (&self.north, &self.north_matrices),
+            (&self.south, &self.south_matrices),
+        ] {
+            let (g, mm): ([&[f64]; 3], [&[f64]; 3]) = (
+                m.grad.each_ref().map(|r| &r[..]),
+                m.mass.each_ref().map(|r| &r[..]),
+            );
+            for e in tris {
+                visit(e, (&g, &mm));
+            }
+        }
+    }
+
+    /// Adds K_dd q to `out`, element by element (section IV), for scalar stiffnesses w0, w1.
+    /// The three displacement components share the same element matrix (eq. 47), so each element
+    /// works on whole [`DVec3`]s.
+    pub fn apply_stiffness(&self, w0: f64, w1: f64, q: &[DVec3], out: &mut [DVec3]) {
+        fn apply<const N: usize>(
+            elems: &[[u32; N]],
+            k: &[[f64; N]; N],
+            q: &[DVec3],
+            out: &mut [DVec3],
+        ) {
+            for e in elems {
+                let qe: [DVec3; N] = std::array::from_fn(|j| q[e[j] as usize]);
+                for i in 0..N {
+                    let mut acc = DVec3::ZERO;
+                    for j in 0..N {
+                        acc += k[i][j] * qe[j];
+                    }
+                    out[e[i] as usize] += acc;
+                }
+            }
+        }
+        apply(&self.quads, &self.quad_matrices.stiffness(w0, w1), q, out);
+        apply(&self.north, &self.north_matrices.stiffness(w0, w1), q, out);
+        apply(&self.south, &self.south_matrices.stiffness(w0, w1), q, out);
+    }
+
+    /// The strain energy ½ qᵀ K_dd q (eq. 29, the q_d block).
+    pub fn strain_energy(&self, w0: f64, w1: f64, q: &[DVec3]) -> f64 {
+        let mut kq = vec![DVec3::ZERO; q.len()];
+        self.apply_stiffness(w0, w1, q, &mut kq);
+        0.5 * q.iter().zip(&kq).map(|(a, b)| a.dot(*b)).sum::<f64>()
+    }
+
+    /// Gershgorin bound on each row of K_dd: Σ_j |K_ij|. The largest eigenvalue of the lumped
+    /// system A⁻¹K is at most max_i of this over A_i, which bounds the explicit Euler step.
+    pub fn stiffness_row_bounds(&self, w0: f64, w1: f64) -> Vec<f64> {
+        let mut rows = vec![0.0; self.node_count()];
+        self.for_each_element(|nodes, (g, m)| {
+            for (a, &n) in nodes.iter().enumerate() {
+                rows[n as usize] += (0..nodes.len())
+                    .map(|b| (w1 * g[a][b] + w0 * m[a][b]).abs())
+                    .sum::<f64>();
+            }
+        });
+        rows
+    }
+
+    /// Wraps any (u, v) onto the domain u ∈ [−π/2, π/2], v ∈ [−π, π): a u past a pole comes back
+    /// on the other side of it, half a turn round in v.
+    pub fn wrap(u: f64, v: f64) -> (f64, f64) {
+        let mut u = (u + FRAC_PI_2).rem_euclid(TAU) - FRAC_PI_2; // u ∈ [−π/2, 3π/2)
+        let mut v = v;
+        if u > FRAC_PI_2 {
+            u = PI - u;
+            v += PI;
+        }
+        (u, (v + PI).rem_euclid(TAU) - PI)
+    }
+
+    /// Locates material point (u, v) in its element and returns the shape functions there
+    /// (eq. 22's N_i). In a cap cell the collapsed coordinates t (towards the pole) and s (along v)
+    /// give N_pole = t, N_j = (1 − t)(1 − s), N_{j+1} = (1 − t) s: the same linear triangle, now
+    /// covering the whole cell.
+    pub fn locate(&self, u: f64, v: f64) -> ElementPoint {
+        let (u, v) = Self::wrap(u, v);
+        let k = self.k;
+        let sv = (v + PI) / self.h_v;
+        let j = (sv.floor() as usize).min(k - 1);
+        let s = (sv - j as f64).clamp(0.0, 1.0);
+        let ring = |i: usize, j: usize| (1 + i * k + (j % k)) as u32;
+        let su = (u + FRAC_PI_2) / self.h_u - 1.0; // ring coordinate: ring i at su = i
+        if su < 0.0 || su >= (k - 1) as f64 {
+            let (pole, i, t, sign) = if su < 0.0 {
+                (0u32, 0, -su, -1.0)
+            } else {
+                (self.north_pole() as u32, k - 1, su - (k - 1) as f64, 1.0)
+            };
+            let t = t.clamp(0.0, 1.0);
+            let (hu, hv) = (sign / self.h_u, 1.0 / self.h_v);
+            return ElementPoint {
+                nodes: [pole, ring(i, j), ring(i, j + 1), ring(i, j + 1)],
+                weights: [t, (1.0 - t) * (1.0 - s), (1.0 - t) * s, 0.0],
+                du: [hu, -hu * (1.0 - s), -hu * s, 0.0],
+                dv: [0.0, -hv * (1.0 - t), hv * (1.0 - t), 0.0],
+            };
+        }
+        let i = (su.floor() as usize).min(k - 2);
+        let r = su - i as f64;
+        let (hu, hv) = (1.0 / self.h_u, 1.0 / self.h_v);
+        ElementPoint {
+            nodes: [
+                ring(i, j),
+                ring(i + 1, j),
+                ring(i + 1, j + 1),
+                ring(i, j + 1),
+            ],
+            weights: [(1.0 - r) * (1.0 - s), r * (1.0 - s), r * s, (1.0 - r) * s],
+            du: [-hu * (1.0 - s), hu * (1.0 - s), hu * s, -hu * s],
+            dv: [-hv * (1.0 - r), -hv * r, hv * r, hv * (1.0 - r)],
+        }
+    }
+
+    /// The render triangulation: each quad split in two and a fan at each pole, wound so that
+    /// (B − A) × (C − A) points outward on a superquadric.
+    pub fn triangles(&self) -> Vec<[u32; 3]> {
+        let mut out = Vec::with_capacity(2 * self.quads.len() + 2 * self.k);
+        for &[n00, n10, n11, n01] in &self.quads {
+            out.push([n00, n01, n11]);
+            out.push([n00, n11, n10]);
+        }
+        for &[a, pole, b] in &self.north {
+            out.push([a, b, pole]);
+        }
+        for &[pole, a, b] in &self.south {
+            out.push([pole, b, a]);
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn node_counts_match_the_paper() {
+        for (k, n) in [(31, 963), (41, 1683), (51, 2603), (71, 5043)] {
+            let t = Tessellation::new(k);
+            assert_eq!(t.node_count(), n);
+            assert_eq!(
+                t.quads.len() + t.north.len() + t.south.len(),
+                (k - 1) * k + 2 * k
+            );
+        }
+    }
+
+    #[test]
+    fn radau_triangle_rule_integrates_cubics_exactly() {
+        // ∫∫_T ξ^a η^b = a! b! / (a + b + 2)!
+        let fact = |n: u32| (1..=n).product::<u32>().max(1) as f64;
+        for a in 0..=3u32 {
+            for b in 0..=(3 - a) {
+                let exact = fact(a) * fact(b) / fact(a + b + 2);
+                let quad: f64 = radau_triangle_rule()
+                    .iter()
+                    .map(|&(x, e, w)| w * x.powi(a as i32) * e.powi(b as i32))
+                    .sum();
+                assert!(
+                    (quad - exact).abs() < 1e-14,
+                    "ξ^{a} η^{b}: {quad} vs {exact}"
+                );
+            }
+        }
+    }
+
+    /// Energy of a displacement field by brute-force numerical integration of its interpolant
+    /// (fine midpoint rule, finite-difference gradients) — independent of the element matrices.
+    fn brute_energy(
+        w0: f64,
+        w1: f64,
+        q: &[f64],
+        region: impl Fn(f64, f64) -> Option<(f64, f64)>,
+        a: f64,
+        b: f64,
+        field: impl Fn(f64, f64, &[f64]) -> f64,
+    ) -> f64 {
+        let n = 400;
+        let mut e = 0.0;
+        let (du, dv) = (a / n as f64, b / n as f64);
+        for iu in 0..n {
+            for iv in 0..n {
+                let (x, y) = ((iu as f64 + 0.5) / n as f64, (iv as f64 + 0.5) / n as f64);
+                if let Some((uu, vv)) = region(x, y) {
+                    let h = 1e-6;
+                    let d = field(uu, vv, q);
+                    let gu = (field(uu + h, vv, q) - field(uu - h, vv, q)) / (2.0 * h);
+                    let gv = (field(uu, vv + h, q) - field(uu, vv - h, q)) / (2.0 * h);
+                    e += (w1 * (gu * gu + gv * gv) + w0 * d * d) * du * dv;
+                }
+            }
+        }
+        0.5 * e
+    }
+
+    #[test]
+    fn quad_stiffness_matches_brute_force_energy_and_gradient() {
+        let (a, b) = (0.3, 0.5);
+        let (w0, w1) = (0.7, 1.3);
+        let m = quad_element(a, b);
+        let k = m.stiffness(w0, w1);
+        let q = [0.2, -0.5, 0.9, 0.4];
+        // Field of the bilinear interpolant on [0,a]×[0,b] with nodes (0,0),(a,0),(a,b),(0,b).
+        let field = |u: f64, v: f64, q: &[f64]| {
+            let (x, y) = (u / a, v / b);
+            q[0] * (1.0 - x) * (1.0 - y)
+                + q[1] * x * (1.0 - y)
+                + q[2] * x * y
+                + q[3] * (1.0 - x) * y
+        };
+        let brute = brute_energy(w0, w1, &q, |x, y| Some((x * a, y * b)), a, b, field);
+        let fe = 0.5
+            * (0..4)
+                .map(|i| (0..4).map(|j| q[i] * k[i][j] * q[j]).sum::<f64>())
+                .sum::<f64>();
+        assert!((fe - brute).abs() < 1e-5 * brute, "{fe} vs {brute}");
+        // K q is the gradient of the energy: central differences.
+        for i in 0..4 {
+            let h = 1e-6;
+            let (mut qp, mut qm) = (q, q);
+            qp[i] += h;
+            qm[i] -= h;
+            let e = |q: &[f64; 4]| {
+                0.5 * (0..4)
+                    .map(|i| (0..4).map(|j| q[i] * k[i][j] * q[j]).sum::<f64>())
+                    .sum::<f64>()
+            };
+            let fd = (e(&qp) - e(&qm)) / (2.0 * h);
+            let kq: f64 = (0..4).map(|j| k[i][j] * q[j]).sum();
+            assert!((fd - kq).abs() < 1e-8);
+        }
+    }
+
+    #[test]
+    fn triangle_stiffness_matches_brute_force_energy() {
+        let (a, b) = (0.4, 0.25);
+        let (w0, w1) = (0.9, 0.6);
+        let q = [0.3, -0.8, 0.5];
+        for cap in [Cap::North, Cap::South] {
+            let k = triangle_element(cap, a, b).stiffness(w0, w1);
+            let fe = 0.5
+                * (0..3)
+                    .map(|i| (0..3).map(|j| q[i] * k[i][j] * q[j]).sum::<f64>())
+                    .sum::<f64>();
+            type Field = fn(f64, f64, &[f64]) -> f64;
+            type Region = fn(f64, f64) -> Option<(f64, f64)>;
+            let (field, region): (Field, Region) = match cap {
+                Cap::North => (
+                    |u, v, q| {
+                        let (x, e) = (u / 0.4, v / 0.25);
+                        q[0] * (1.0 - x - e) + q[1] * x + q[2] * e
+                    },
+                    |x, y| (x + y <= 1.0).then_some((x * 0.4, y * 0.25)),
+                ),
+                Cap::South => (
+                    |u, v, q| {
+                        let (x, e) = (u / 0.4, v / 0.25);
+                        q[0] * (1.0 - x) + q[1] * (x - e) + q[2] * e
+                    },
+                    |x, y| (y <= x).then_some((x * 0.4, y * 0.25)),
+                ),
+            };
+            let brute = brute_energy(w0, w1, &q, region, a, b, field);
+            assert!(
+                (fe - brute).abs() < 5e-3 * brute,
+                "{cap:?}: {fe} vs {brute}"
+            );
+        }
+    }
+
+    #[test]
+    fn stiffness_is_symmetric_psd_and_constant_field_has_zero_membrane_energy() {
+        let t = Tessellation::new(9);
+        let n = t.node_count();
+        // Assemble K (one component) column by column through apply_stiffness.
+        let (w0, w1) = (0.0, 0.4);
+        let mut k = vec![vec![0.0; n]; n];
+        for j in 0..n {
+            let mut e = vec![DVec3::ZERO; n];
+            e[j] = DVec3::X;
+            let mut out = vec![DVec3::ZERO; n];
+            t.apply_stiffness(w0, w1, &e, &mut out);
+            for i in 0..n {
+                k[i][j] = out[i].x;
+            }
+        }
+        for i in 0..n {
+            for j in 0..n {
+                assert!((k[i][j] - k[j][i]).abs() < 1e-12);
+            }
+        }
+        // PSD: energy of many pseudo-random vectors is ≥ 0.
+        let mut seed = 12345u64;
+        for _ in 0..50 {
+            let q: Vec<DVec3> = (0..n)
+                .map(|_| {
+                    seed = seed
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                    DVec3::splat((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5)
+                })
+                .collect();
+            assert!(t.strain_energy(w0, w1, &q) >= -1e-12);
+            assert!(t.strain_energy(0.3, w1, &q) > 0.0);
+        }
+        let constant = vec![DVec3::new(0.3, -1.0, 2.0); n];
+        assert!(t.strain_energy(0.0, w1, &constant).abs() < 1e-12);
+        assert!(t.strain_energy(0.1, w1, &constant) > 0.0);
+    }
+
+    #[test]
+    fn locate_interpolates_node_coordinates_and_wraps() {
+        let t = Tessellation::new(7);
+        for (i, &[u, v]) in t.uv.iter().enumerate().skip(1).take(t.node_count() - 2) {
+            let p = t.locate(u, v);
+            let w: f64 = p.weights.iter().sum();
+            assert!((w - 1.0).abs() < 1e-12);
+            let at = p
+                .nodes
+                .iter()
+                .zip(p.weights)
+                .find(|(_, w)| *w > 0.999)
+                .map(|(n, _)| *n as usize);
+            assert_eq!(at, Some(i), "node {i} at ({u},{v})");
+        }
+        // Past the north pole: u = π/2 + δ is u = π/2 − δ half a turn round.
+        let (u, v) = Tessellation::wrap(FRAC_PI_2 + 0.1, 0.2);
+        assert!((u - (FRAC_PI_2 - 0.1)).abs() < 1e-12 && (v - (0.2 - PI)).abs() < 1e-12);
+        let p = t.locate(FRAC_PI_2, 1.0);
+        assert_eq!(p.nodes[0] as usize, t.north_pole());
+        assert!((p.weights[0] - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn locate_gradients_match_central_differences() {
+        let t = Tessellation::new(8);
+        let field = |n: usize| DVec3::new(n as f64 * 0.37 % 1.0, (n * n) as f64 * 0.11 % 1.0, 1.0);
+        for &(u, v) in &[(0.3, 0.4), (-1.45, 2.0), (1.5, -1.0), (0.0, -3.0)] {
+            let p = t.locate(u, v);
+            let grad_u: DVec3 = (0..4).map(|i| p.du[i] * field(p.nodes[i] as usize)).sum();
+            let grad_v: DVec3 = (0..4).map(|i| p.dv[i] * field(p.nodes[i] as usize)).sum();
+            let h = 1e-7;
+            let fd_u = (t.locate(u + h, v).interpolate(field)
+                - t.locate(u - h, v).interpolate(field))
+                / (2.0 * h);
+            let fd_v = (t.locate(u, v + h).interpolate(field)
+                - t.locate(u, v - h).interpolate(field))
+                / (2.0 * h);
+            assert!(
+                (grad_u - fd_u).length() < 1e-5,
+                "{grad_u:?} vs {fd_u:?} at ({u},{v})"
+            );
+            assert!(
+                (grad_v - fd_v).length() < 1e-5,
+                "{grad_v:?} vs {fd_v:?} at ({u},{v})"
+            );
+        }
+    }
+
+    #[test]
+    fn nodal_areas_sum_to_covered_area() {
+        let t = Tessellation::new(11);
+        let total: f64 = t.node_area.iter().sum();
+        let expected =
+            (t.k - 1) as f64 * t.k as f64 * t.h_u * t.h_v + 2.0 * t.k as f64 * 0.5 * t.h_u * t.h_v;
+        assert!((total - expected).abs() < 1e-12);
+        assert!(t.node_area.iter().all(|&a| a > 0.0));
+    }
+}

@@ -1,0 +1,518 @@
+//! A headless fitting loop: range points in, a deformable superquadric at equilibrium out.
+//!
+//! The loop is the paper's (section VI-B): attach every data point to its point of influence,
+//! then repeat {gather spring forces → Euler step}, reattaching every `reassign_every` steps
+//! (200 in the paper). It stops at equilibrium: when the largest node motion in one step falls
+//! below `tolerance` × the data's scale right after a reattachment that changed nothing; or after
+//! `max_steps`. A model at rest is reattached at once rather than waiting for the next multiple of
+//! N, which reaches the same equilibrium in fewer steps.
+//!
+//! **Frame and scale.** The loop works on the data translated to its centroid and divided by its
+//! RMS radius, and maps the result back, so a fit does not depend on where the data sits or on its
+//! units: translate, rotate or scale the input and the result is the same fit, transformed.
+//!
+//! **Coverage first.** Data-to-model springs cannot pull a part of the model that no data point
+//! chose, so the loop starts with the weak model-to-data coverage springs of `forces::range` on,
+//! global DOFs only, until the model is at rest; then it switches them off, so the equilibrium is
+//! the paper's (data-to-model springs only). `coverage = 0` skips this stage.
+//!
+//! **Global first.** With `global_first` (default), the local DOFs are held until the global ones
+//! have come to rest, so the superquadric parameters capture all they can — what a recogniser
+//! indexes — and the local displacements only the detail it misses. The paper lets both move from
+//! the start; set `global_first = false` for that.
+
+use super::dynamics::{DynamicsParams, ModelState, NodalForces, StepError, Workspace, step};
+use super::fem::Tessellation;
+use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces};
+use super::init::{InitialPose, initial_pose, moments};
+use bevy::math::DVec3;
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use std::num::NonZero;
+
+/// Fewest points a fit accepts: the 11 independent global DOFs need at least 4 points in general
+/// position, and the moments a few more to mean anything.
+pub const MIN_POINTS: usize = 10;
+
+/// How the first superquadric is placed.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum Initialization {
+    /// From the data's centroid and central moments ([`initial_pose`]).
+    #[default]
+    Moments,
+    /// An explicit pose and shape in the data's frame and units (the paper's experiments).
+    Explicit(InitialPose),
+}
+
+/// Everything a fit can be told.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FitOptions {
+    /// Tessellation: k rings × k longitudes + 2 poles.
+    pub k: usize,
+    /// Stiffness, damping, time step and free DOFs.
+    pub dynamics: DynamicsParams,
+    /// Range-spring strength per unit material area.
+    pub beta: f64,
+    /// How points of influence are chosen.
+    pub influence: InfluenceMode,
+    /// Density of the model-to-data coverage springs as a fraction of β (0: the paper's forces).
+    pub coverage: f64,
+    /// Reattach points every N steps (the paper: 200).
+    pub reassign_every: u32,
+    /// Step cap.
+    pub max_steps: u32,
+    /// Rest threshold: largest node motion in a step, in units of the data's RMS radius.
+    pub tolerance: f64,
+    /// Hold the local DOFs until the global ones are at rest.
+    pub global_first: bool,
+    /// Freeze the local DOFs for good: a pure superquadric fit.
+    pub global_only: bool,
+    /// Initial pose and shape.
+    pub init: Initialization,
+}
+
+impl Default for FitOptions {
+    /// k = 31 (963 nodes), w0 = 1e-3, w1 = 0.1, β = 4, nearest-node springs reattached every
+    /// 200 steps, global first, moments initialisation.
+    fn default() -> Self {
+        Self {
+            k: 31,
+            dynamics: DynamicsParams::default(),
+            beta: 4.0,
+            influence: InfluenceMode::NearestNode,
+            coverage: DEFAULT_COVERAGE,
+            reassign_every: 200,
+            max_steps: 20_000,
+            tolerance: 1e-6,
+            global_first: true,
+            global_only: false,
+            init: Initialization::Moments,
+        }
+    }
+}
+
+/// Why a fit could not run.
+#[derive(Clone, Debug, PartialEq)]
+pub enum FitError {
+    /// Fewer than [`MIN_POINTS`] points.
+    TooFewPoints {
+        /// How many there were.
+        found: usize,
+    },
+    /// A coordinate is NaN or infinite.
+    NonFinitePoint {
+        /// Index of the offending point.
+        index: usize,
+    },
+    /// All points coincide (no extent to fit).
+    Degenerate,
+    /// An option is out of range; names it.
+    BadOption(String),
+    /// The simulation refused a step.
+    Step(StepError),
+}
+
+impl std::fmt::Display for FitError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FitError::TooFewPoints { found } => {
+                write!(f, "{found} points; a fit needs at least {MIN_POINTS}")
+            }
+            FitError::NonFinitePoint { index } => {
+                write!(f, "point {index} has a NaN or infinite coordinate")
+            }
+            FitError::Degenerate => write!(f, "all points coincide; there is no shape to fit"),
+            FitError::BadOption(what) => write!(f, "{what}"),
+            FitError::Step(e) => write!(f, "simulation failed: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for FitError {}
+
+/// Which degrees of freedom the loop is moving, and with which forces.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stage {
+    /// Global DOFs only, with the model-to-data coverage springs on (placing the model).
+    Cover,
+    /// Global DOFs only (local held), the paper's forces.
+    Global,
+    /// Global and local DOFs together.
+    Joint,
+}
+
+/// A snapshot for progress reports.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FitProgress {
+    /// Steps taken so far.
+    pub step: u32,
+    /// Current stage.
+    pub stage: Stage,
+    /// Largest node motion of the last step (units of the data's RMS radius).
+    pub max_motion: f64,
+    /// Spring plus strain energy (normalised units).
+    pub energy: f64,
+    /// Reattachments so far.
+    pub reassignments: u32,
+}
+
+/// Distances of the data points to the fitted surface, as fractions of the data's bounding-box
+/// diagonal.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Residuals {
+    /// Mean distance.
+    pub mean: f64,
+    /// Root-mean-square distance.
+    pub rms: f64,
+    /// 95th percentile.
+    pub p95: f64,
+    /// Largest distance.
+    pub max: f64,
+    /// The bounding-box diagonal the figures are relative to (data units).
+    pub diagonal: f64,
+}
+
+/// The outcome of a fit.
+#[derive(Clone, Debug)]
+pub struct FitReport {
+    /// The fitted state in the data's frame and units.
+    pub state: ModelState,
+    /// The tessellation the state lives on.
+    pub tess: Tessellation,
+    /// Steps taken.
+    pub steps: u32,
+    /// Steps taken in the global-only stage.
+    pub global_steps: u32,
+    /// Reattachments done.
+    pub reassignments: u32,
+    /// True when the loop stopped at rest rather than at the step cap.
+    pub converged: bool,
+    /// Steps whose local update was sub-stepped for stability.
+    pub substepped_steps: u32,
+    /// Point-to-surface residuals of the fitted model.
+    pub residuals: Residuals,
+    /// Initial pose the loop started from (data frame).
+    pub initial: InitialPose,
+}
+
+/// The normalisation that maps data to a centred unit-RMS frame and back.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Normalization {
+    /// Data centroid.
+    pub centroid: DVec3,
+    /// Data RMS radius about the centroid.
+    pub scale: f64,
+}
+
+impl Normalization {
+    /// The normalisation of `points`.
+    pub fn of(points: &[DVec3]) -> Self {
+        let centroid = moments(points).centroid;
+        let scale = (points
+            .iter()
+            .map(|p| p.distance_squared(centroid))
+            .sum::<f64>()
+            / points.len().max(1) as f64)
+            .sqrt();
+        Self { centroid, scale }
+    }
+    fn unit_point(&self, p: DVec3) -> DVec3 {
+        (p - self.centroid) / self.scale
+    }
+    fn pose_to_unit(&self, pose: &InitialPose) -> InitialPose {
+        let mut shape = pose.shape;
+        shape.a /= self.scale;
+        InitialPose {
+            translation: self.unit_point(pose.translation),
+            rotation: pose.rotation,
+            shape,
+        }
+    }
+    /// Maps a state from the unit frame back to data units.
+    pub fn state_to_data(&self, s: &ModelState) -> ModelState {
+        let mut shape = s.shape;
+        shape.a *= self.scale;
+        ModelState {
+            translation: self.centroid + s.translation * self.scale,
+            rotation: s.rotation,
+            shape,
+            displacement: s.displacement.iter().map(|d| *d * self.scale).collect(),
+        }
+    }
+}
+
+/// Checks the points a fit is given.
+pub fn validate_points(points: &[DVec3]) -> Result<(), FitError> {
+    if let Some(index) = points.iter().position(|p| !p.is_finite()) {
+        return Err(FitError::NonFinitePoint { index });
+    }
+    if points.len() < MIN_POINTS {
+        return Err(FitError::TooFewPoints {
+            found: points.len(),
+        });
+    }
+    let n = Normalization::of(points);
+    if !(n.scale > 1e-12 * (1.0 + n.centroid.abs().max_element())) {
+        return Err(FitError::Degenerate);
+    }
+    Ok(())
+}
+
+fn validate_options(o: &FitOptions) -> Result<(), FitError> {
+    let d = &o.dynamics;
+    let bad = |name: &str, v: f64| FitError::BadOption(format!("{name} = {v} is out of range"));
+    for (name, v, ok) in [
+        ("w0", d.w0, d.w0 >= 0.0),
+        ("w1", d.w1, d.w1 >= 0.0),
+        ("dt", d.dt, d.dt > 0.0),
+        ("gamma_global", d.gamma_global, d.gamma_global > 0.0),
+        ("gamma_local", d.gamma_local, d.gamma_local > 0.0),
+        ("beta", o.beta, o.beta > 0.0),
+        ("tolerance", o.tolerance, o.tolerance > 0.0),
+        ("coverage", o.coverage, o.coverage >= 0.0),
+    ] {
+        if !(ok && v.is_finite()) {
+            return Err(bad(name, v));
+        }
+    }
+    if o.k < super::fem::MIN_K {
+        return Err(FitError::BadOption(format!(
+            "k = {} is below the minimum {}",
+            o.k,
+            super::fem::MIN_K
+        )));
+    }
+    if o.reassign_every == 0 {
+        return Err(FitError::BadOption(
+            "reassign_every = 0; it must be at least 1".into(),
+        ));
+    }
+    Ok(())
+}
+
+/// Fits a deformable superquadric to `points`, calling `progress` every 100 steps.
+pub fn fit(
+    points: &[DVec3],
+    opts: &FitOptions,
+    mut progress: impl FnMut(&FitProgress),
+) -> Result<FitReport, FitError> {
+    validate_points(points)?;
+    validate_options(opts)?;
+    let norm = Normalization::of(points);
+    let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
+    let initial = match opts.init {
+        Initialization::Moments => initial_pose(points),
+        Initialization::Explicit(pose) => pose,
+    };
+    let start = norm.pose_to_unit(&initial);
+    let tess = Tessellation::new(opts.k);
+    let mut state = ModelState::new(
+        &tess,
+        start.translation,
+        start.rotation,
+        start.shape.normalized(),
+    );
+    let mut range = RangeForces::new(unit, opts.beta, opts.influence);
+    range.coverage = opts.coverage;
+    let mut params = opts.dynamics;
+    let mut stage = if opts.coverage > 0.0 {
+        Stage::Cover
+    } else if opts.global_first || opts.global_only {
+        Stage::Global
+    } else {
+        Stage::Joint
+    };
+    params.free.local = params.free.local && stage == Stage::Joint;
+
+    let mut ws = Workspace::default();
+    let mut forces = NodalForces::new(tess.node_count());
+    let (mut x, mut x_new) = (Vec::new(), Vec::new());
+    state.node_positions(&tess, &mut x);
+    range.reassign(&tess, &x);
+    let (mut reassignments, mut since, mut global_steps, mut substepped) = (1u32, 0u32, 0u32, 0u32);
+    let mut converged = false;
+    let mut steps = 0;
+    while steps < opts.max_steps {
+        range.migrate(&tess, &x);
+        forces.clear(tess.node_count());
+        range.accumulate(&tess, &x, &mut forces);
+        let report = step(&tess, &mut state, &forces, &params, &mut ws).map_err(FitError::Step)?;
+        steps += 1;
+        since += 1;
+        if stage != Stage::Joint {
+            global_steps += 1;
+        }
+        if report.substeps > 1 {
+            substepped += 1;
+        }
+        state.node_positions(&tess, &mut x_new);
+        let motion = x
+            .iter()
+            .zip(&x_new)
+            .map(|(a, b)| a.distance_squared(*b))
+            .fold(0.0, f64::max)
+            .sqrt();
+        std::mem::swap(&mut x, &mut x_new);
+        let at_rest = motion < opts.tolerance;
+        if steps % 100 == 0 {
+            let energy = range.energy(&tess, &x)
+                + tess.strain_energy(params.w0, params.w1, &state.displacement);
+            progress(&FitProgress {
+                step: steps,
+                stage,
+                max_motion: motion,
+                energy,
+                reassignments,
+            });
+        }
+        if since >= opts.reassign_every || at_rest {
+            let changed = range.reassign(&tess, &x);
+            reassignments += 1;
+            since = 0;
+            if at_rest && changed == 0 {
+                if stage == Stage::Cover {
+                    // Placed: switch the coverage springs off and let the data alone decide.
+                    stage = if opts.global_first || opts.global_only {
+                        Stage::Global
+                    } else {
+                        Stage::Joint
+                    };
+                    params.free.local = opts.dynamics.free.local && stage == Stage::Joint;
+                    range.coverage = 0.0;
+                    range.reassign(&tess, &x);
+                } else if stage == Stage::Global && !opts.global_only && opts.dynamics.free.local {
+                    stage = Stage::Joint;
+                    params.free.local = true;
+                } else {
+                    converged = true;
+                    break;
+                }
+            }
+        }
+    }
+    let state = norm.state_to_data(&state);
+    let mut world_x = Vec::new();
+    state.node_positions(&tess, &mut world_x);
+    let residuals = residuals(&tess, &world_x, points);
+    Ok(FitReport {
+        state,
+        tess,
+        steps,
+        global_steps,
+        reassignments,
+        converged,
+        substepped_steps: substepped,
+        residuals,
+        initial,
+    })
+}
+
+/// Closest point to `p` on triangle (a, b, c) (Ericson, Real-Time Collision Detection §5.1.5).
+pub fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> DVec3 {
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(ap), ac.dot(ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return a;
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(bp), ac.dot(bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return b;
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return a + ab * (d1 / (d1 - d3));
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(cp), ac.dot(cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return c;
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return a + ac * (d2 / (d2 - d6));
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
+    }
+    let denom = 1.0 / (va + vb + vc);
+    a + ab * (vb * denom) + ac * (vc * denom)
+}
+
+/// Number of nearest nodes whose incident triangles are searched for each point's closest
+/// surface point in [`residuals`].
+pub const RESIDUAL_CANDIDATE_NODES: usize = 12;
+
+/// Distance from every point to the triangulated surface through `node_x` (the render
+/// triangulation of `tess`). The closest point is searched on the triangles around the
+/// [`RESIDUAL_CANDIDATE_NODES`] nearest nodes (k-d tree), which contain it on any surface whose
+/// triangles are not much longer than the node spacing.
+pub fn point_distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) -> Vec<f64> {
+    let tris = tess.triangles();
+    let mut incident: Vec<Vec<u32>> = vec![Vec::new(); node_x.len()];
+    for (t, tri) in tris.iter().enumerate() {
+        for &n in tri {
+            incident[n as usize].push(t as u32);
+        }
+    }
+    let entries: Vec<[f64; 3]> = node_x.iter().map(|p| p.to_array()).collect();
+    let tree = ImmutableKdTree::<f64, 3>::new_from_slice(&entries).ok();
+    let k = NonZero::new(RESIDUAL_CANDIDATE_NODES.min(node_x.len()).max(1))
+        .unwrap_or(NonZero::<usize>::MIN);
+    points
+        .iter()
+        .map(|p| {
+            let candidates: Vec<u32> = match &tree {
+                Some(tree) => tree
+                    .query(&p.to_array())
+                    .nearest_n::<SquaredEuclidean<f64>>(k)
+                    .execute()
+                    .iter()
+                    .map(|r| r.item)
+                    .collect(),
+                None => (0..node_x.len() as u32).collect(),
+            };
+            let mut best = f64::INFINITY;
+            for n in candidates {
+                for &t in &incident[n as usize] {
+                    let [a, b, c] = tris[t as usize];
+                    let q = closest_point_on_triangle(
+                        *p,
+                        node_x[a as usize],
+                        node_x[b as usize],
+                        node_x[c as usize],
+                    );
+                    best = best.min(q.distance_squared(*p));
+                }
+            }
+            best.sqrt()
+        })
+        .collect()
+}
+
+/// Point-to-surface residual statistics relative to the points' bounding-box diagonal.
+pub fn residuals(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) -> Residuals {
+    let (lo, hi) = points
+        .iter()
+        .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), p| {
+            (lo.min(*p), hi.max(*p))
+        });
+    let diagonal = (hi - lo).length();
+    let mut d = point_distances(tess, node_x, points);
+    if d.is_empty() || !(diagonal > 0.0) {
+        return Residuals {
+            diagonal,
+            ..Default::default()
+        };
+    }
+    d.sort_by(f64::total_cmp);
+    let m = d.len() as f64;
+    let p95 = d[((0.95 * (m - 1.0)).round() as usize).min(d.len() - 1)];
+    Residuals {
+        mean: d.iter().sum::<f64>() / m / diagonal,
+        rms: (d.iter().map(|x| x * x).sum::<f64>() / m).sqrt() / diagonal,
+        p95: p95 / diagonal,
+        max: d[d.len() - 1] / diagonal,
+        diagonal,
+    }
+}

@@ -1,0 +1,3 @@
+//! Applied forces (section V): data turned into point forces on the model's surface.
+
+pub mod range;

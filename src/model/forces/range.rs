@@ -1,0 +1,388 @@
+//! Range-data forces (eq. 22): a spring w (r − x(u_r)) from every data point r to its point of
+//! influence u_r on the model's surface. (The paper prints the magnitude β‖r − x‖; the force is the
+//! vector.)
+//!
+//! **Weight.** Each of the m points gets w = β |Ω| / m, where |Ω| is the area of the material
+//! domain covered by the elements (≈ 2π²). The springs then act as a force density β per unit
+//! material area whatever m is, so the motion does not depend on how many points a scan has.
+//!
+//! **Points of influence.** [`InfluenceMode::NearestNode`] is the paper's: u_r is the node nearest
+//! r, found again every N steps. The paper did that by brute force in O(mn); [`nearest_indices`]
+//! uses a k-d tree (kiddo) in O((m + n) log n) and gives the same assignment as
+//! [`nearest_indices_brute`] (tested). [`InfluenceMode::Migrating`] is the paper's alternative
+//! (Fig. 3): each point of influence slides over the surface by the tangential components of its
+//! force until they vanish, at the foot of the perpendicular from r; a reassignment then only
+//! replaces it when the nearest node is closer.
+//!
+//! **Coverage springs (beyond the paper).** Data-to-model springs leave every part of the model
+//! that no data point chose free: fitted from an initial state larger than the data, a part with
+//! no data near it (the top of a too-tall tube) stays where it is and the global fit stalls. Each
+//! node therefore also gets a weak spring to its nearest data point, of density `coverage` × β per
+//! unit material area, acting on the global DOFs only (so it never bends the membrane onto the
+//! data). It is the model-to-data half of a symmetric (Chamfer) distance; `coverage = 0` gives the
+//! paper's forces exactly. On one-view data the coverage springs also pull the unseen back towards
+//! the data, so the fit loop uses them only to place the model and then switches them off.
+
+use crate::model::dynamics::NodalForces;
+use crate::model::fem::{ElementPoint, Tessellation};
+use bevy::math::DVec3;
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+
+/// How each data point's point of influence u_r is chosen.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum InfluenceMode {
+    /// The node nearest the data point, refreshed at every reassignment (the paper's experiments).
+    #[default]
+    NearestNode,
+    /// The point migrates over the surface along the tangential force (Fig. 3); `rate` is the
+    /// fraction of the Gauss–Newton move in u and v taken per step (0 < rate ≤ 1).
+    Migrating {
+        /// Step fraction per migration step.
+        rate: f64,
+    },
+}
+
+/// A data point's point of influence: material coordinates and the element it lies in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Influence {
+    /// Material latitude u_r.
+    pub u: f64,
+    /// Material longitude v_r.
+    pub v: f64,
+    /// The element and shape functions at (u_r, v_r).
+    pub at: ElementPoint,
+}
+
+/// Range data attached to one model: the points, their springs and points of influence.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RangeForces {
+    /// Data points r in world space.
+    pub points: Vec<DVec3>,
+    /// Spring stiffness β per unit material area (each point gets β |Ω| / m).
+    pub beta: f64,
+    /// How points of influence are chosen.
+    pub mode: InfluenceMode,
+    /// Current point of influence of each data point (empty until the first [`Self::reassign`]).
+    pub influence: Vec<Influence>,
+    /// Density of the model-to-data coverage springs, as a fraction of β (see the module docs).
+    pub coverage: f64,
+    /// Nearest data point of each node, refreshed with the points of influence.
+    pub node_targets: Vec<u32>,
+}
+
+/// Default coverage-spring density as a fraction of β.
+pub const DEFAULT_COVERAGE: f64 = 0.1;
+
+/// For every query point, the index of the nearest point of `nodes` (usually the model's nodes),
+/// by a k-d tree over `nodes`. Falls back to [`nearest_indices_brute`] if the tree cannot be built.
+pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
+    let entries: Vec<[f64; 3]> = nodes.iter().map(|p| p.to_array()).collect();
+    let Ok(tree) = ImmutableKdTree::<f64, 3>::new_from_slice(&entries) else {
+        return nearest_indices_brute(nodes, points);
+    };
+    points
+        .iter()
+        .map(|p| {
+            tree.query(&p.to_array())
+                .nearest_one::<SquaredEuclidean<f64>>()
+                .execute()
+                .item
+        })
+        .collect()
+}
+
+/// The paper's O(mn) brute-force nearest-node search (the reference for [`nearest_indices`]).
+pub fn nearest_indices_brute(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
+    points
+        .iter()
+        .map(|p| {
+            let mut best = (f64::INFINITY, 0u32);
+            for (i, n) in nodes.iter().enumerate() {
+                let d = n.distance_squared(*p);
+                if d < best.0 {
+                    best = (d, i as u32);
+                }
+            }
+            best.1
+        })
+        .collect()
+}
+
+impl RangeForces {
+    /// Range data with no points of influence yet.
+    pub fn new(points: Vec<DVec3>, beta: f64, mode: InfluenceMode) -> Self {
+        Self {
+            points,
+            beta,
+            mode,
+            influence: Vec::new(),
+            coverage: DEFAULT_COVERAGE,
+            node_targets: Vec::new(),
+        }
+    }
+
+    /// The spring constant w = β |Ω| / m of each point.
+    pub fn point_weight(&self, tess: &Tessellation) -> f64 {
+        let area: f64 = tess.node_area.iter().sum();
+        if self.points.is_empty() {
+            0.0
+        } else {
+            self.beta * area / self.points.len() as f64
+        }
+    }
+
+    /// Refreshes the points of influence from the current node positions `node_x`. Nearest-node
+    /// mode moves every point to its nearest node; migrating mode does so only where the nearest
+    /// node is closer than the current point of influence. Returns how many points moved.
+    pub fn reassign(&mut self, tess: &Tessellation, node_x: &[DVec3]) -> usize {
+        self.node_targets = if self.coverage > 0.0 {
+            nearest_indices(&self.points, node_x)
+        } else {
+            Vec::new()
+        };
+        let nearest = nearest_indices(node_x, &self.points);
+        let fresh = self.influence.len() != self.points.len();
+        let mut changed = 0;
+        if fresh {
+            self.influence.clear();
+        }
+        for (i, &n) in nearest.iter().enumerate() {
+            let [u, v] = tess.uv[n as usize];
+            let candidate = Influence {
+                u,
+                v,
+                at: ElementPoint::at_node(n),
+            };
+            if fresh {
+                self.influence.push(candidate);
+                changed += 1;
+                continue;
+            }
+            let current = &mut self.influence[i];
+            let replace = match self.mode {
+                InfluenceMode::NearestNode => {
+                    current.at.nodes[0] != n || current.at.weights[0] != 1.0
+                }
+                InfluenceMode::Migrating { .. } => {
+                    let here = current
+                        .at
+                        .interpolate(|k| node_x[k])
+                        .distance_squared(self.points[i]);
+                    node_x[n as usize].distance_squared(self.points[i]) < here
+                }
+            };
+            if replace {
+                *current = candidate;
+                changed += 1;
+            }
+        }
+        changed
+    }
+
+    /// Adds every spring w (r − x(u_r)) to `out`, spread to the element's nodes by N_i (eq. 22),
+    /// with stiffness w, and the coverage springs to `out.shape_force`. Does nothing before the
+    /// first [`Self::reassign`].
+    pub fn accumulate(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut NodalForces) {
+        let w = self.point_weight(tess);
+        for (r, inf) in self.points.iter().zip(&self.influence) {
+            let x = inf.at.interpolate(|k| node_x[k]);
+            out.add(&inf.at, w * (*r - x), w);
+        }
+        for (i, &t) in self.node_targets.iter().enumerate() {
+            let wi = self.coverage * self.beta * tess.node_area[i];
+            out.shape_force[i] += wi * (self.points[t as usize] - node_x[i]);
+            out.shape_stiffness[i] += wi;
+        }
+    }
+
+    /// The springs' potential energy ½ w Σ |r − x(u_r)|² plus that of the coverage springs.
+    pub fn energy(&self, tess: &Tessellation, node_x: &[DVec3]) -> f64 {
+        let w = self.point_weight(tess);
+        let data: f64 = self
+            .points
+            .iter()
+            .zip(&self.influence)
+            .map(|(r, inf)| inf.at.interpolate(|k| node_x[k]).distance_squared(*r))
+            .sum();
+        let cover: f64 = self
+            .node_targets
+            .iter()
+            .enumerate()
+            .map(|(i, &t)| {
+                self.coverage
+                    * self.beta
+                    * tess.node_area[i]
+                    * node_x[i].distance_squared(self.points[t as usize])
+            })
+            .sum();
+        0.5 * (w * data + cover)
+    }
+
+    /// One migration step (Fig. 3): project each point's force onto the surface tangents
+    /// ∂x/∂u, ∂x/∂v at its point of influence and move (u_r, v_r) by `rate` times the move that
+    /// would cancel each projection, at most one element per step, halving the move while it would
+    /// take the point farther from its datum. Only in migrating mode.
+    pub fn migrate(&mut self, tess: &Tessellation, node_x: &[DVec3]) {
+        let InfluenceMode::Migrating { rate } = self.mode else {
+            return;
+        };
+        for (r, inf) in self.points.iter().zip(self.influence.iter_mut()) {
+            let at = &inf.at;
+            let x = at.interpolate(|k| node_x[k]);
+            let tu: DVec3 = (0..4)
+                .map(|i| at.du[i] * node_x[at.nodes[i] as usize])
+                .sum();
+            let tv: DVec3 = (0..4)
+                .map(|i| at.dv[i] * node_x[at.nodes[i] as usize])
+                .sum();
+            let f = *r - x;
+            let step = |t: DVec3, h: f64| {
+                let t2 = t.length_squared();
+                if t2 > 1e-24 {
+                    (rate * f.dot(t) / t2).clamp(-h, h)
+                } else {
+                    0.0
+                }
+            };
+            let (mut du, mut dv) = (step(tu, tess.h_u), step(tv, tess.h_v));
+            // Descent safeguard: across element edges the tangents jump, and a full move can
+            // overshoot a kink of the faceted surface; halve it until the distance does not grow.
+            let here = f.length_squared();
+            for _ in 0..4 {
+                let (u, v) = Tessellation::wrap(inf.u + du, inf.v + dv);
+                let at = tess.locate(u, v);
+                if at.interpolate(|k| node_x[k]).distance_squared(*r) <= here {
+                    *inf = Influence { u, v, at };
+                    break;
+                }
+                du *= 0.5;
+                dv *= 0.5;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::dynamics::ModelState;
+    use crate::model::superquadric::SuperquadricParams;
+    use bevy::math::DQuat;
+    use std::f64::consts::{FRAC_PI_2, PI, TAU};
+
+    fn pseudo_random(n: usize, seed: u64) -> Vec<DVec3> {
+        let mut s = seed;
+        let mut next = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        (0..n)
+            .map(|_| DVec3::new(next(), next(), next()) * 1.5)
+            .collect()
+    }
+
+    #[test]
+    fn kd_tree_assignment_equals_brute_force() {
+        for k in [5, 20, 41] {
+            let tess = Tessellation::new(k);
+            let state = ModelState::new(
+                &tess,
+                DVec3::new(0.1, 0.0, -0.2),
+                DQuat::from_rotation_y(0.4),
+                SuperquadricParams {
+                    a: 1.0,
+                    a1: 1.0,
+                    a2: 0.7,
+                    a3: 0.5,
+                    e1: 0.3,
+                    e2: 0.5,
+                },
+            );
+            let mut x = Vec::new();
+            state.node_positions(&tess, &mut x);
+            let pts = pseudo_random(3000, k as u64);
+            let fast = nearest_indices(&x, &pts);
+            let brute = nearest_indices_brute(&x, &pts);
+            for (i, (a, b)) in fast.iter().zip(&brute).enumerate() {
+                // Equal distances (ties between coincident-distance nodes) are the same answer.
+                let (da, db) = (
+                    x[*a as usize].distance_squared(pts[i]),
+                    x[*b as usize].distance_squared(pts[i]),
+                );
+                assert!(
+                    a == b || da == db,
+                    "point {i}: kd {a} ({da}) vs brute {b} ({db})"
+                );
+            }
+            let same = fast.iter().zip(&brute).filter(|(a, b)| a == b).count();
+            assert!(
+                same >= pts.len() - 5,
+                "only {same} of {} identical",
+                pts.len()
+            );
+        }
+    }
+
+    #[test]
+    fn migration_reaches_the_foot_of_the_perpendicular() {
+        let tess = Tessellation::new(24);
+        let state = ModelState::new(
+            &tess,
+            DVec3::ZERO,
+            DQuat::IDENTITY,
+            SuperquadricParams::default(),
+        );
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        // Points just outside a unit sphere, between nodes: the nearest surface point is r/|r|.
+        let dirs = [
+            DVec3::new(0.3, 0.5, 0.2),
+            DVec3::new(-0.7, 0.1, 0.4),
+            DVec3::new(0.1, -0.2, -0.9),
+        ];
+        let pts: Vec<DVec3> = dirs.iter().map(|d| 1.3 * d.normalize()).collect();
+        let mut range = RangeForces::new(pts.clone(), 1.0, InfluenceMode::Migrating { rate: 0.5 });
+        range.reassign(&tess, &x);
+        let before: Vec<f64> = range
+            .influence
+            .iter()
+            .zip(&pts)
+            .map(|(inf, r)| inf.at.interpolate(|k| x[k]).distance(*r))
+            .collect();
+        for _ in 0..100 {
+            range.migrate(&tess, &x);
+        }
+        for ((inf, r), b) in range.influence.iter().zip(&pts).zip(before) {
+            let xs = inf.at.interpolate(|k| x[k]);
+            let d = xs.distance(*r);
+            assert!(d <= b, "migration moved away: {b} -> {d}");
+            // The true minimum over the faceted surface, by dense sampling of material coordinates.
+            let mut best = f64::INFINITY;
+            for i in 0..=600 {
+                for j in 0..=1200 {
+                    let (u, v) = (
+                        -FRAC_PI_2 + PI * i as f64 / 600.0,
+                        -PI + TAU * j as f64 / 1200.0,
+                    );
+                    best = best.min(tess.locate(u, v).interpolate(|k| x[k]).distance(*r));
+                }
+            }
+            assert!(
+                d - best < 2e-4,
+                "migrated distance {d}, minimum {best}, nearest node {b}"
+            );
+        }
+    }
+
+    #[test]
+    fn weights_make_force_density_independent_of_point_count() {
+        let tess = Tessellation::new(10);
+        let a = RangeForces::new(pseudo_random(100, 1), 2.0, InfluenceMode::NearestNode);
+        let b = RangeForces::new(pseudo_random(400, 1), 2.0, InfluenceMode::NearestNode);
+        let area: f64 = tess.node_area.iter().sum();
+        assert!((a.point_weight(&tess) * 100.0 - 2.0 * area).abs() < 1e-12);
+        assert!((b.point_weight(&tess) * 400.0 - 2.0 * area).abs() < 1e-12);
+    }
+}

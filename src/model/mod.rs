@@ -1,0 +1,16 @@
+//! The paper's model as pure functions and plain data (no ECS types): sections III–V and the
+//! appendices of Terzopoulos & Metaxas, *Dynamic 3D Models with Local and Global Deformations:
+//! Deformable Superquadrics*, IEEE PAMI 13(7), 1991.
+//!
+//! Read top to bottom: [`superquadric`] (s, J) → [`frame`] (R, B) → [`fem`] (tessellation,
+//! element stiffness, K q) → [`dynamics`] (f_q, C, the Euler step) → [`forces`] (range springs) →
+//! [`init`] (moments) → [`fit`] (the loop to equilibrium).
+
+pub mod dynamics;
+pub mod fem;
+pub mod fit;
+pub mod forces;
+pub mod frame;
+pub mod init;
+pub mod linalg;
+pub mod superquadric;

@@ -1,0 +1,169 @@
+//! The command-line fitter (`examples/fit.rs`), run as a user runs it: every bad input gives a
+//! one-line error naming the file and exit code 2; a good input gives a JSON summary line and the
+//! requested mesh and parameter files.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// The example binary that `cargo test` builds next to the test binaries.
+fn fit_binary() -> PathBuf {
+    let exe = std::env::current_exe().expect("test binary path");
+    let dir = exe.parent().and_then(Path::parent).expect("target dir");
+    let bin = dir
+        .join("examples")
+        .join(format!("fit{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        bin.exists(),
+        "{} not built; cargo test builds examples",
+        bin.display()
+    );
+    bin
+}
+
+fn scratch() -> PathBuf {
+    let d = std::env::temp_dir().join(format!("bdsq-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn run(args: &[&str]) -> Output {
+    Command::new(fit_binary())
+        .args(args)
+        .output()
+        .expect("run fit")
+}
+
+fn assert_bad_input(args: &[&str], file_hint: &str, what: &str) {
+    let out = run(args);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "args {args:?}: stderr {err}");
+    let lines: Vec<&str> = err.lines().collect();
+    assert_eq!(lines.len(), 1, "not one line: {err}");
+    assert!(
+        lines[0].contains(file_hint),
+        "error does not name {file_hint}: {err}"
+    );
+    assert!(
+        lines[0].to_lowercase().contains(what),
+        "error does not say {what}: {err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+#[test]
+fn bad_inputs_exit_2_with_a_one_line_error() {
+    let dir = scratch();
+    let write = |name: &str, text: &str| {
+        let p = dir.join(name);
+        std::fs::write(&p, text).unwrap();
+        p.display().to_string()
+    };
+    let missing = dir.join("missing.obj").display().to_string();
+    assert_bad_input(&[&missing], "missing.obj", "cannot read");
+    let empty = write("empty.obj", "");
+    assert_bad_input(&[&empty], "empty.obj", "empty");
+    let text = write("text.obj", "v 1.0 hello 2.0\n");
+    assert_bad_input(&[&text], "text.obj", "line 1");
+    let nan = write("nan.obj", "v 0 0 0\nv 1 1 1\nv NaN 0 1\n");
+    assert_bad_input(&[&nan], "nan.obj", "nan");
+    let inf = write(
+        "inf.ply",
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 inf 1\n",
+    );
+    assert_bad_input(&[&inf], "inf.ply", "line 9");
+    let mut bin = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty double x\nproperty double y\nproperty double z\nend_header\n".to_vec();
+    for v in [0.0f64, 0.0, 0.0, 1.0, f64::INFINITY, 1.0] {
+        bin.extend_from_slice(&v.to_le_bytes());
+    }
+    let bin_path = dir.join("inf_binary.ply");
+    std::fs::write(&bin_path, bin).unwrap();
+    assert_bad_input(&[bin_path.to_str().unwrap()], "inf_binary.ply", "infinite");
+    let few = write("few.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n");
+    assert_bad_input(&[&few], "few.obj", "at least");
+    let same = write("same.obj", &"v 1 1 1\n".repeat(20));
+    assert_bad_input(&[&same], "same.obj", "coincide");
+    let bad_ply = write(
+        "bad.ply",
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n0\n1\n",
+    );
+    assert_bad_input(&[&bad_ply], "bad.ply", "y");
+    let dir_arg = dir.display().to_string();
+    assert_bad_input(&[&dir_arg], &dir_arg, "directory");
+    let txt = write("points.txt", "1 2 3\n");
+    assert_bad_input(&[&txt], "points.txt", "extension");
+}
+
+#[test]
+fn bad_options_exit_2() {
+    let cloud = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/assets/data/ems/partial_pointCloud_example_1.ply"
+    );
+    for args in [
+        vec![cloud, "--nodes", "100"],
+        vec![cloud, "--w1", "-1"],
+        vec![cloud, "--bogus"],
+        vec![cloud, "--w0", "abc"],
+    ] {
+        let out = run(&args);
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        assert!(!String::from_utf8_lossy(&out.stderr).contains("panicked"));
+    }
+}
+
+#[test]
+fn fits_a_shipped_cloud_and_writes_mesh_and_params() {
+    let dir = scratch();
+    let cloud = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/assets/data/ems/partial_pointCloud_example_1.ply"
+    );
+    let mesh = dir.join("fit.obj");
+    let params = dir.join("fit.json");
+    let out = run(&[
+        cloud,
+        "--k",
+        "15",
+        "--quiet",
+        "--out-mesh",
+        mesh.to_str().unwrap(),
+        "--out-params",
+        params.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let last = stdout.lines().last().expect("summary line");
+    let summary: serde_json::Value = serde_json::from_str(last).expect("JSON summary");
+    for key in ["steps", "wall_ms", "points", "nodes", "mean", "rms", "max"] {
+        assert!(summary.get(key).is_some(), "summary lacks {key}: {last}");
+    }
+    assert_eq!(summary["points"], 147);
+    assert_eq!(summary["nodes"], 227);
+    assert!(summary["mean"].as_f64().unwrap() < 0.01, "{last}");
+    let obj = std::fs::read_to_string(&mesh).unwrap();
+    assert_eq!(obj.lines().filter(|l| l.starts_with("v ")).count(), 227);
+    assert_eq!(
+        obj.lines().filter(|l| l.starts_with("f ")).count(),
+        2 * 227 - 4
+    );
+    let p: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&params).unwrap()).unwrap();
+    for key in [
+        "translation",
+        "rotation",
+        "a",
+        "a1",
+        "a2",
+        "a3",
+        "e1",
+        "e2",
+        "nodes",
+        "residuals",
+    ] {
+        assert!(p.get(key).is_some(), "params lack {key}");
+    }
+}
