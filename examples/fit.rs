@@ -1,35 +1,46 @@
 //! Command-line fitter: fits a deformable superquadric to a point cloud.
 //!
 //! ```text
-//! cargo run --release --example fit -- POINTS [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F]
+//! cargo run --release --example fit -- (POINTS | --paper egg|mug) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F]
 //!     [--global-only] [--migrate] [--reassign N] [--max-steps N] [--quiet]
 //!     [--out-mesh FILE.obj] [--out-params FILE.json]
 //! ```
 //!
-//! POINTS is an OBJ (vertices are the points) or PLY file. Progress goes to stderr; the last line
+//! POINTS is an OBJ (vertices are the points) or PLY file; `--paper egg` / `--paper mug` runs the
+//! paper's range experiment on its rebuilt data with the paper's settings (options given after it
+//! override them). Progress goes to stderr; the last line
 //! on stdout is a one-line JSON summary. Bad input exits with code 2 and a one-line message.
 
+use bevy::math::DVec3;
 use bevy_deformable_sq::io::{FittedParams, load_points, write_model_obj};
 use bevy_deformable_sq::model::fit::{FitOptions, Stage, fit};
 use bevy_deformable_sq::model::forces::range::InfluenceMode;
+use bevy_deformable_sq::synthetic;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-const USAGE: &str = "usage: fit POINTS [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] [--global-only] [--migrate] \
+const USAGE: &str = "usage: fit (POINTS | --paper egg|mug) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] [--global-only] [--migrate] \
 [--reassign N] [--max-steps N] [--quiet] [--out-mesh FILE.obj] [--out-params FILE.json]";
 
+/// Where the points come from.
+enum Source {
+    File(PathBuf),
+    Paper(&'static str),
+}
+
 struct Args {
-    points: PathBuf,
+    source: Source,
     options: FitOptions,
     out_mesh: Option<PathBuf>,
     out_params: Option<PathBuf>,
     quiet: bool,
 }
 
-fn parse_args() -> Result<Args, String> {
+fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
     let mut args = std::env::args().skip(1);
     let mut points = None;
+    let mut paper = None;
     let mut o = FitOptions::default();
     let (mut out_mesh, mut out_params, mut quiet) = (None, None, false);
     fn value<T: std::str::FromStr>(flag: &str, v: Option<String>) -> Result<T, String> {
@@ -68,6 +79,16 @@ fn parse_args() -> Result<Args, String> {
             "--beta" => o.beta = finite(&a, value(&a, args.next())?, f64::MIN_POSITIVE)?,
             "--reassign" => o.reassign_every = value::<u32>(&a, args.next())?.max(1),
             "--max-steps" => o.max_steps = value(&a, args.next())?,
+            "--paper" => {
+                let name = args.next().ok_or("--paper needs egg or mug")?;
+                let (pts, opts) = match name.as_str() {
+                    "egg" => synthetic::egg_experiment(),
+                    "mug" => synthetic::mug_experiment(),
+                    _ => return Err(format!("--paper {name}: expected egg or mug")),
+                };
+                paper = Some((if name == "egg" { "egg" } else { "mug" }, pts));
+                o = opts;
+            }
             "--global-only" => o.global_only = true,
             "--migrate" => o.influence = InfluenceMode::Migrating { rate: 0.5 },
             "--quiet" => quiet = true,
@@ -90,24 +111,37 @@ fn parse_args() -> Result<Args, String> {
             }
         }
     }
-    let points = points.ok_or_else(|| format!("no POINTS file given\n{USAGE}"))?;
-    Ok(Args {
-        points,
+    let (source, paper_points) = match (points, paper) {
+        (Some(p), None) => (Source::File(p), None),
+        (None, Some((name, pts))) => (Source::Paper(name), Some(pts)),
+        (Some(_), Some(_)) => return Err(format!("give POINTS or --paper, not both\n{USAGE}")),
+        (None, None) => return Err(format!("no POINTS file given\n{USAGE}")),
+    };
+    let args = Args {
+        source,
         options: o,
         out_mesh,
         out_params,
         quiet,
-    })
+    };
+    Ok((args, paper_points))
 }
 
 fn run() -> Result<(), String> {
-    let args = parse_args()?;
-    let points = load_points(&args.points).map_err(|e| e.to_string())?;
+    let (args, paper_points) = parse_args()?;
+    let (points, name) = match (&args.source, paper_points) {
+        (Source::File(path), _) => (
+            load_points(path).map_err(|e| e.to_string())?,
+            path.display().to_string(),
+        ),
+        (Source::Paper(name), Some(pts)) => (pts, format!("paper:{name}")),
+        (Source::Paper(name), None) => return Err(format!("no data for --paper {name}")),
+    };
     let start = Instant::now();
     let quiet = args.quiet;
     let mut last_print = Instant::now();
     let report = fit(&points, &args.options, |p| {
-        if !quiet && (last_print.elapsed().as_millis() >= 500 || p.step % 1000 == 0) {
+        if !quiet && (last_print.elapsed().as_millis() >= 500 || p.step.is_multiple_of(1000)) {
             last_print = Instant::now();
             let stage = match p.stage {
                 Stage::Cover => "placing",
@@ -121,7 +155,7 @@ fn run() -> Result<(), String> {
             );
         }
     })
-    .map_err(|e| format!("{}: {e}", args.points.display()))?;
+    .map_err(|e| format!("{name}: {e}"))?;
     let wall = start.elapsed();
     if let Some(path) = &args.out_mesh {
         write_model_obj(path, &report.tess, &report.state).map_err(|e| e.to_string())?;
@@ -133,7 +167,7 @@ fn run() -> Result<(), String> {
     }
     let r = report.residuals;
     let summary = serde_json::json!({
-        "file": args.points.display().to_string(),
+        "file": name,
         "steps": report.steps,
         "global_steps": report.global_steps,
         "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
@@ -146,7 +180,8 @@ fn run() -> Result<(), String> {
         "rms": r.rms,
         "p95": r.p95,
         "max": r.max,
-        "a": params.a, "a1": params.a1, "a2": params.a2, "a3": params.a3, "e1": params.e1, "e2": params.e2,
+        "a": params.shape.a, "a1": params.shape.a1, "a2": params.shape.a2, "a3": params.shape.a3,
+        "e1": params.shape.e1, "e2": params.shape.e2,
     });
     println!("{summary}");
     Ok(())

@@ -10,6 +10,7 @@
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
 use crate::model::fit::{FitReport, Residuals};
+use crate::model::superquadric::SuperquadricParams;
 use bevy::math::DVec3;
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -241,18 +242,9 @@ pub struct FittedParams {
     pub translation: [f64; 3],
     /// Rotation quaternion in the paper's order [s, v1, v2, v3].
     pub rotation: [f64; 4],
-    /// Scale a (data units).
-    pub a: f64,
-    /// Aspect ratio a1.
-    pub a1: f64,
-    /// Aspect ratio a2.
-    pub a2: f64,
-    /// Aspect ratio a3.
-    pub a3: f64,
-    /// Squareness ε1.
-    pub e1: f64,
-    /// Squareness ε2.
-    pub e2: f64,
+    /// The global shape (a in data units), flattened into the JSON object.
+    #[serde(flatten)]
+    pub shape: SuperquadricParams,
     /// Node count k² + 2.
     pub nodes: usize,
     /// Rings and longitudes k.
@@ -275,12 +267,7 @@ impl FittedParams {
         Self {
             translation: s.translation.to_array(),
             rotation: crate::model::frame::quat_to_paper(s.rotation),
-            a: s.shape.a,
-            a1: s.shape.a1,
-            a2: s.shape.a2,
-            a3: s.shape.a3,
-            e1: s.shape.e1,
-            e2: s.shape.e2,
+            shape: s.shape,
             nodes: r.tess.node_count(),
             k: r.tess.k,
             local_rms: (s

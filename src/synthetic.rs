@@ -7,6 +7,8 @@
 //! * [`mug`]: 651 points from the upper part of an upright mug whose wall has pits.
 //! * [`superquadric_cloud`]: points on a superquadric with known pose and parameters.
 
+use crate::model::fit::{FitOptions, Initialization};
+use crate::model::init::{InitialPose, moments};
 use crate::model::superquadric::{SuperquadricParams, shape_at};
 use bevy::math::{DQuat, DVec3};
 use std::f64::consts::{FRAC_PI_2, PI};
@@ -163,6 +165,57 @@ pub fn superquadric_cloud(
             p + noise * DVec3::new(rng.normal(), rng.normal(), rng.normal())
         })
         .collect()
+}
+
+/// A paper experiment: its data and the fit options the paper gives.
+fn paper_experiment(
+    points: Vec<DVec3>,
+    k: usize,
+    w0: f64,
+    w1: f64,
+    shape: SuperquadricParams,
+) -> (Vec<DVec3>, FitOptions) {
+    let mut o = FitOptions {
+        k,
+        ..Default::default()
+    };
+    o.dynamics.w0 = w0;
+    o.dynamics.w1 = w1;
+    o.init = Initialization::Explicit(InitialPose {
+        translation: moments(&points).centroid,
+        rotation: DQuat::IDENTITY,
+        shape,
+    });
+    (points, o)
+}
+
+/// The paper's third experiment: [`egg`] data, 2603 nodes (k = 51), w0 = 1e-6, w1 = 0.1, and the
+/// initial sphere at the data's centre of gravity, a = 1.2, a1 = a2 = a3 = 0.5, ε1 = ε2 = 1.
+pub fn egg_experiment() -> (Vec<DVec3>, FitOptions) {
+    let sphere = SuperquadricParams {
+        a: 1.2,
+        a1: 0.5,
+        a2: 0.5,
+        a3: 0.5,
+        e1: 1.0,
+        e2: 1.0,
+    };
+    paper_experiment(egg(), 51, 1e-6, 0.1, sphere)
+}
+
+/// The paper's fourth experiment: [`mug`] data, 1683 nodes (k = 41), w0 = 0.01, w1 = 0.1, and the
+/// "tubular" initial state a = 1.5, a1 = a2 = 0.3, a3 = 0.8, ε1 = 0.7, ε2 = 1.0, upright at the
+/// data's centroid.
+pub fn mug_experiment() -> (Vec<DVec3>, FitOptions) {
+    let tube = SuperquadricParams {
+        a: 1.5,
+        a1: 0.3,
+        a2: 0.3,
+        a3: 0.8,
+        e1: 0.7,
+        e2: 1.0,
+    };
+    paper_experiment(mug(), 41, 0.01, 0.1, tube)
 }
 
 #[cfg(test)]

@@ -1,66 +1,22 @@
 //! The paper's range experiments (section VI-B) on data rebuilt from their description
 //! (`bevy_deformable_sq::synthetic`), with the paper's node counts, stiffnesses and initial states.
 
-use bevy::math::{DQuat, DVec3};
-use bevy_deformable_sq::model::fit::{FitOptions, FitReport, Initialization, fit};
-use bevy_deformable_sq::model::init::{InitialPose, moments};
-use bevy_deformable_sq::model::superquadric::SuperquadricParams;
+use bevy::math::DVec3;
+use bevy_deformable_sq::model::fit::{FitOptions, FitReport, fit};
 use bevy_deformable_sq::synthetic;
 
 fn run(points: &[DVec3], opts: FitOptions) -> FitReport {
     fit(points, &opts, |_| {}).expect("fit runs")
 }
 
-/// Egg: 2603 nodes (k = 51), w0 = 1e-6, w1 = 0.1, initial sphere at the data's centre of gravity
-/// with a = 1.2, a1 = a2 = a3 = 0.5, ε = 1.
 fn egg_options(global_only: bool) -> (Vec<DVec3>, FitOptions) {
-    let points = synthetic::egg();
-    let mut o = FitOptions {
-        k: 51,
-        global_only,
-        ..Default::default()
-    };
-    o.dynamics.w0 = 1e-6;
-    o.dynamics.w1 = 0.1;
-    o.init = Initialization::Explicit(InitialPose {
-        translation: moments(&points).centroid,
-        rotation: DQuat::IDENTITY,
-        shape: SuperquadricParams {
-            a: 1.2,
-            a1: 0.5,
-            a2: 0.5,
-            a3: 0.5,
-            e1: 1.0,
-            e2: 1.0,
-        },
-    });
-    (points, o)
+    let (points, o) = synthetic::egg_experiment();
+    (points, FitOptions { global_only, ..o })
 }
 
-/// Mug: 1683 nodes (k = 41), w0 = 0.01, w1 = 0.1, the "tubular" initial state a = 1.5,
-/// a1 = a2 = 0.3, a3 = 0.8, ε1 = 0.7, ε2 = 1.0, upright at the data's centroid.
 fn mug_options(global_only: bool) -> (Vec<DVec3>, FitOptions) {
-    let points = synthetic::mug();
-    let mut o = FitOptions {
-        k: 41,
-        global_only,
-        ..Default::default()
-    };
-    o.dynamics.w0 = 0.01;
-    o.dynamics.w1 = 0.1;
-    o.init = Initialization::Explicit(InitialPose {
-        translation: moments(&points).centroid,
-        rotation: DQuat::IDENTITY,
-        shape: SuperquadricParams {
-            a: 1.5,
-            a1: 0.3,
-            a2: 0.3,
-            a3: 0.8,
-            e1: 0.7,
-            e2: 1.0,
-        },
-    });
-    (points, o)
+    let (points, o) = synthetic::mug_experiment();
+    (points, FitOptions { global_only, ..o })
 }
 
 #[test]

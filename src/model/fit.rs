@@ -3,7 +3,8 @@
 //! The loop is the paper's (section VI-B): attach every data point to its point of influence,
 //! then repeat {gather spring forces → Euler step}, reattaching every `reassign_every` steps
 //! (200 in the paper). It stops at equilibrium: when the largest node motion in one step falls
-//! below `tolerance` × the data's scale right after a reattachment that changed nothing; or after
+//! below `tolerance` × the data's scale right after a reattachment that moved at most
+//! `settle_fraction` of the points (0.2 %: noisy points can flip between nodes for ever); or after
 //! `max_steps`. A model at rest is reattached at once rather than waiting for the next multiple of
 //! N, which reaches the same equilibrium in fewer steps.
 //!
@@ -62,6 +63,9 @@ pub struct FitOptions {
     pub max_steps: u32,
     /// Rest threshold: largest node motion in a step, in units of the data's RMS radius.
     pub tolerance: f64,
+    /// A reattachment that moves at most this fraction of the points counts as changing nothing
+    /// (noisy points can flip between two nearly equidistant nodes for ever).
+    pub settle_fraction: f64,
     /// Hold the local DOFs until the global ones are at rest.
     pub global_first: bool,
     /// Freeze the local DOFs for good: a pure superquadric fit.
@@ -83,6 +87,7 @@ impl Default for FitOptions {
             reassign_every: 200,
             max_steps: 20_000,
             tolerance: 1e-6,
+            settle_fraction: 0.002,
             global_first: true,
             global_only: false,
             init: Initialization::Moments,
@@ -178,9 +183,9 @@ pub struct FitReport {
     pub state: ModelState,
     /// The tessellation the state lives on.
     pub tess: Tessellation,
-    /// Steps taken.
+    /// Steps taken, over every initial hypothesis tried.
     pub steps: u32,
-    /// Steps taken in the global-only stage.
+    /// Steps the chosen hypothesis took in the global-only stages.
     pub global_steps: u32,
     /// Reattachments done.
     pub reassignments: u32,
@@ -269,6 +274,11 @@ fn validate_options(o: &FitOptions) -> Result<(), FitError> {
         ("beta", o.beta, o.beta > 0.0),
         ("tolerance", o.tolerance, o.tolerance > 0.0),
         ("coverage", o.coverage, o.coverage >= 0.0),
+        (
+            "settle_fraction",
+            o.settle_fraction,
+            (0.0..1.0).contains(&o.settle_fraction),
+        ),
     ] {
         if !(ok && v.is_finite()) {
             return Err(bad(name, v));
@@ -289,7 +299,173 @@ fn validate_options(o: &FitOptions) -> Result<(), FitError> {
     Ok(())
 }
 
+/// One model relaxing under range springs: the state of the loop between steps.
+struct Relaxation<'a> {
+    tess: &'a Tessellation,
+    opts: &'a FitOptions,
+    state: ModelState,
+    range: RangeForces,
+    params: DynamicsParams,
+    ws: Workspace,
+    forces: NodalForces,
+    x: Vec<DVec3>,
+    x_new: Vec<DVec3>,
+    steps: u32,
+    global_steps: u32,
+    substepped: u32,
+    reassignments: u32,
+}
+
+impl<'a> Relaxation<'a> {
+    fn new(
+        tess: &'a Tessellation,
+        opts: &'a FitOptions,
+        unit: &[DVec3],
+        start: &InitialPose,
+    ) -> Self {
+        let state = ModelState::new(
+            tess,
+            start.translation,
+            start.rotation,
+            start.shape.normalized(),
+        );
+        let mut range = RangeForces::new(unit.to_vec(), opts.beta, opts.influence);
+        range.coverage = 0.0;
+        let mut x = Vec::new();
+        state.node_positions(tess, &mut x);
+        Self {
+            tess,
+            opts,
+            state,
+            range,
+            params: opts.dynamics,
+            ws: Workspace::default(),
+            forces: NodalForces::new(tess.node_count()),
+            x,
+            x_new: Vec::new(),
+            steps: 0,
+            global_steps: 0,
+            substepped: 0,
+            reassignments: 0,
+        }
+    }
+
+    /// Runs `stage` until the model is at rest right after a reattachment that changed nothing
+    /// (true), or until `budget` total steps (false).
+    fn run(
+        &mut self,
+        stage: Stage,
+        budget: u32,
+        progress: &mut impl FnMut(&FitProgress),
+    ) -> Result<bool, FitError> {
+        let tess = self.tess;
+        self.params.free.local = self.opts.dynamics.free.local && stage == Stage::Joint;
+        self.range.coverage = if stage == Stage::Cover {
+            self.opts.coverage
+        } else {
+            0.0
+        };
+        self.range.reassign(tess, &self.x);
+        self.reassignments += 1;
+        let mut since = 0;
+        while self.steps < budget {
+            self.range.migrate(tess, &self.x);
+            self.forces.clear(tess.node_count());
+            self.range.accumulate(tess, &self.x, &mut self.forces);
+            let report = step(
+                tess,
+                &mut self.state,
+                &self.forces,
+                &self.params,
+                &mut self.ws,
+            )
+            .map_err(FitError::Step)?;
+            self.steps += 1;
+            since += 1;
+            if stage != Stage::Joint {
+                self.global_steps += 1;
+            }
+            if report.substeps > 1 {
+                self.substepped += 1;
+            }
+            self.state.node_positions(tess, &mut self.x_new);
+            let motion = self
+                .x
+                .iter()
+                .zip(&self.x_new)
+                .map(|(a, b)| a.distance_squared(*b))
+                .fold(0.0, f64::max)
+                .sqrt();
+            std::mem::swap(&mut self.x, &mut self.x_new);
+            let at_rest = motion < self.opts.tolerance;
+            if self.steps.is_multiple_of(100) {
+                let energy = self.range.energy(tess, &self.x)
+                    + tess.strain_energy(self.params.w0, self.params.w1, &self.state.displacement);
+                progress(&FitProgress {
+                    step: self.steps,
+                    stage,
+                    max_motion: motion,
+                    energy,
+                    reassignments: self.reassignments,
+                });
+            }
+            if since >= self.opts.reassign_every || at_rest {
+                let changed = self.range.reassign(tess, &self.x);
+                self.reassignments += 1;
+                since = 0;
+                let settled =
+                    changed as f64 <= self.opts.settle_fraction * self.range.points.len() as f64;
+                if at_rest && settled {
+                    return Ok(true);
+                }
+            }
+        }
+        Ok(false)
+    }
+
+    /// Mean point-to-surface distance of the unit-frame data to the current surface.
+    fn mean_distance(&self) -> f64 {
+        let d = point_distances(self.tess, &self.x, &self.range.points);
+        d.iter().sum::<f64>() / d.len().max(1) as f64
+    }
+}
+
+/// The moments frame with each principal axis in turn as the model's z axis: the superquadric's
+/// z is special (ε1 shapes its profile), and which data axis it belongs on is not always the one
+/// of largest spread (a squat mug's axis is its smallest).
+fn axis_hypotheses(pose: &InitialPose) -> [InitialPose; 3] {
+    let m = bevy::math::DMat3::from_quat(pose.rotation);
+    let semi = pose.shape.semi_axes();
+    std::array::from_fn(|i| {
+        // Cyclic permutation keeps the frame right-handed: (x, y, z) → (y, z, x) → (z, x, y).
+        let (cx, cy, cz) = (i, (i + 1) % 3, (i + 2) % 3);
+        let (ax, ay, az) = (
+            [semi.x, semi.y, semi.z][cx],
+            [semi.x, semi.y, semi.z][cy],
+            [semi.x, semi.y, semi.z][cz],
+        );
+        let frame = bevy::math::DMat3::from_cols(m.col(cx), m.col(cy), m.col(cz));
+        let a = ax.max(ay).max(az);
+        InitialPose {
+            translation: pose.translation,
+            rotation: bevy::math::DQuat::from_mat3(&frame).normalize(),
+            shape: super::superquadric::SuperquadricParams {
+                a,
+                a1: ax / a,
+                a2: ay / a,
+                a3: az / a,
+                ..pose.shape
+            },
+        }
+    })
+}
+
 /// Fits a deformable superquadric to `points`, calling `progress` every 100 steps.
+///
+/// Stages: coverage (placing, global DOFs), global (the paper's springs, global DOFs), joint
+/// (global and local DOFs), each run to rest; see the module docs. With moments initialisation
+/// the first two stages run from each of the three axis hypotheses of the moments frame and the
+/// one whose surface lies closest to the data goes on.
 pub fn fit(
     points: &[DVec3],
     opts: &FitOptions,
@@ -299,110 +475,52 @@ pub fn fit(
     validate_options(opts)?;
     let norm = Normalization::of(points);
     let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
-    let initial = match opts.init {
-        Initialization::Moments => initial_pose(points),
-        Initialization::Explicit(pose) => pose,
+    let candidates: Vec<InitialPose> = match opts.init {
+        Initialization::Moments => axis_hypotheses(&initial_pose(points)).to_vec(),
+        Initialization::Explicit(pose) => vec![pose],
     };
-    let start = norm.pose_to_unit(&initial);
     let tess = Tessellation::new(opts.k);
-    let mut state = ModelState::new(
-        &tess,
-        start.translation,
-        start.rotation,
-        start.shape.normalized(),
-    );
-    let mut range = RangeForces::new(unit, opts.beta, opts.influence);
-    range.coverage = opts.coverage;
-    let mut params = opts.dynamics;
-    let mut stage = if opts.coverage > 0.0 {
-        Stage::Cover
-    } else if opts.global_first || opts.global_only {
-        Stage::Global
-    } else {
-        Stage::Joint
-    };
-    params.free.local = params.free.local && stage == Stage::Joint;
-
-    let mut ws = Workspace::default();
-    let mut forces = NodalForces::new(tess.node_count());
-    let (mut x, mut x_new) = (Vec::new(), Vec::new());
-    state.node_positions(&tess, &mut x);
-    range.reassign(&tess, &x);
-    let (mut reassignments, mut since, mut global_steps, mut substepped) = (1u32, 0u32, 0u32, 0u32);
-    let mut converged = false;
-    let mut steps = 0;
-    while steps < opts.max_steps {
-        range.migrate(&tess, &x);
-        forces.clear(tess.node_count());
-        range.accumulate(&tess, &x, &mut forces);
-        let report = step(&tess, &mut state, &forces, &params, &mut ws).map_err(FitError::Step)?;
-        steps += 1;
-        since += 1;
-        if stage != Stage::Joint {
-            global_steps += 1;
+    let global_stage = opts.global_first || opts.global_only || !opts.dynamics.free.local;
+    let mut best: Option<(f64, Relaxation, bool, InitialPose)> = None;
+    let mut steps_used = 0;
+    for (i, initial) in candidates.iter().enumerate() {
+        // Each hypothesis gets an equal share of what the step cap leaves.
+        let share = (opts.max_steps - steps_used) / (candidates.len() - i) as u32;
+        let mut relax = Relaxation::new(&tess, opts, &unit, &norm.pose_to_unit(initial));
+        let mut converged = true;
+        if opts.coverage > 0.0 {
+            converged &= relax.run(Stage::Cover, share, &mut progress)?;
         }
-        if report.substeps > 1 {
-            substepped += 1;
+        if global_stage {
+            converged &= relax.run(Stage::Global, share, &mut progress)?;
         }
-        state.node_positions(&tess, &mut x_new);
-        let motion = x
-            .iter()
-            .zip(&x_new)
-            .map(|(a, b)| a.distance_squared(*b))
-            .fold(0.0, f64::max)
-            .sqrt();
-        std::mem::swap(&mut x, &mut x_new);
-        let at_rest = motion < opts.tolerance;
-        if steps % 100 == 0 {
-            let energy = range.energy(&tess, &x)
-                + tess.strain_energy(params.w0, params.w1, &state.displacement);
-            progress(&FitProgress {
-                step: steps,
-                stage,
-                max_motion: motion,
-                energy,
-                reassignments,
-            });
-        }
-        if since >= opts.reassign_every || at_rest {
-            let changed = range.reassign(&tess, &x);
-            reassignments += 1;
-            since = 0;
-            if at_rest && changed == 0 {
-                if stage == Stage::Cover {
-                    // Placed: switch the coverage springs off and let the data alone decide.
-                    stage = if opts.global_first || opts.global_only {
-                        Stage::Global
-                    } else {
-                        Stage::Joint
-                    };
-                    params.free.local = opts.dynamics.free.local && stage == Stage::Joint;
-                    range.coverage = 0.0;
-                    range.reassign(&tess, &x);
-                } else if stage == Stage::Global && !opts.global_only && opts.dynamics.free.local {
-                    stage = Stage::Joint;
-                    params.free.local = true;
-                } else {
-                    converged = true;
-                    break;
-                }
-            }
+        steps_used += relax.steps;
+        let score = relax.mean_distance();
+        if best.as_ref().is_none_or(|b| score < b.0) {
+            best = Some((score, relax, converged, *initial));
         }
     }
-    let state = norm.state_to_data(&state);
+    let Some((_, mut relax, mut converged, initial)) = best else {
+        return Err(FitError::BadOption("no initial state to start from".into()));
+    };
+    let other_steps = steps_used - relax.steps;
+    if !opts.global_only && opts.dynamics.free.local {
+        converged = relax.run(Stage::Joint, opts.max_steps - other_steps, &mut progress)?;
+    }
+    let state = norm.state_to_data(&relax.state);
     let mut world_x = Vec::new();
     state.node_positions(&tess, &mut world_x);
     let residuals = residuals(&tess, &world_x, points);
     Ok(FitReport {
         state,
-        tess,
-        steps,
-        global_steps,
-        reassignments,
+        steps: relax.steps + other_steps,
+        global_steps: relax.global_steps,
+        reassignments: relax.reassignments,
         converged,
-        substepped_steps: substepped,
+        substepped_steps: relax.substepped,
         residuals,
         initial,
+        tess,
     })
 }
 
