@@ -2,26 +2,28 @@
 //!
 //! ```text
 //! cargo run --release --example fit -- (POINTS | --paper egg|mug) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F]
-//!     [--global-only] [--migrate] [--reassign N] [--max-steps N] [--quiet]
+//!     [--global-only] [--migrate] [--reassign N] [--max-steps N] [--quiet] [--app]
 //!     [--out-mesh FILE.obj] [--out-params FILE.json]
 //! ```
 //!
 //! POINTS is an OBJ (vertices are the points) or PLY file; `--paper egg` / `--paper mug` runs the
 //! paper's range experiment on its rebuilt data with the paper's settings (options given after it
-//! override them). Progress goes to stderr; the last line
+//! override them). `--app` runs the same fit through `DeformableSqPlugin` in a headless Bevy app
+//! (every initial hypothesis an entity, simulated in parallel); the result is the same. Progress goes to stderr; the last line
 //! on stdout is a one-line JSON summary. Bad input exits with code 2 and a one-line message.
 
 use bevy::math::DVec3;
 use bevy_deformable_sq::io::{FittedParams, load_points, write_model_obj};
 use bevy_deformable_sq::model::fit::{FitOptions, Stage, fit};
 use bevy_deformable_sq::model::forces::range::InfluenceMode;
+use bevy_deformable_sq::plugin::headless::fit_headless;
 use bevy_deformable_sq::synthetic;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
 const USAGE: &str = "usage: fit (POINTS | --paper egg|mug) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] [--global-only] [--migrate] \
-[--reassign N] [--max-steps N] [--quiet] [--out-mesh FILE.obj] [--out-params FILE.json]";
+[--reassign N] [--max-steps N] [--quiet] [--app] [--out-mesh FILE.obj] [--out-params FILE.json]";
 
 /// Where the points come from.
 enum Source {
@@ -35,6 +37,7 @@ struct Args {
     out_mesh: Option<PathBuf>,
     out_params: Option<PathBuf>,
     quiet: bool,
+    app: bool,
 }
 
 fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
@@ -42,7 +45,7 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
     let mut points = None;
     let mut paper = None;
     let mut o = FitOptions::default();
-    let (mut out_mesh, mut out_params, mut quiet) = (None, None, false);
+    let (mut out_mesh, mut out_params, mut quiet, mut app) = (None, None, false, false);
     fn value<T: std::str::FromStr>(flag: &str, v: Option<String>) -> Result<T, String> {
         let v = v.ok_or_else(|| format!("{flag} needs a value"))?;
         v.parse()
@@ -92,6 +95,7 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
             "--global-only" => o.global_only = true,
             "--migrate" => o.influence = InfluenceMode::Migrating { rate: 0.5 },
             "--quiet" => quiet = true,
+            "--app" => app = true,
             "--out-mesh" => {
                 out_mesh = Some(PathBuf::from(args.next().ok_or("--out-mesh needs a file")?))
             }
@@ -123,6 +127,7 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
         out_mesh,
         out_params,
         quiet,
+        app,
     };
     Ok((args, paper_points))
 }
@@ -140,7 +145,10 @@ fn run() -> Result<(), String> {
     let start = Instant::now();
     let quiet = args.quiet;
     let mut last_print = Instant::now();
-    let report = fit(&points, &args.options, |p| {
+    let report = if args.app {
+        fit_headless(&points, &args.options)
+    } else {
+        fit(&points, &args.options, |p| {
         if !quiet && (last_print.elapsed().as_millis() >= 500 || p.step.is_multiple_of(1000)) {
             last_print = Instant::now();
             let stage = match p.stage {
@@ -154,7 +162,8 @@ fn run() -> Result<(), String> {
                 p.step, p.max_motion, p.energy, p.reassignments, rate
             );
         }
-    })
+        })
+    }
     .map_err(|e| format!("{name}: {e}"))?;
     let wall = start.elapsed();
     if let Some(path) = &args.out_mesh {
@@ -175,6 +184,7 @@ fn run() -> Result<(), String> {
         "points": points.len(),
         "nodes": report.tess.node_count(),
         "global_only": args.options.global_only,
+        "through": if args.app { "plugin" } else { "core" },
         "converged": report.converged,
         "mean": r.mean,
         "rms": r.rms,

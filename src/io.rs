@@ -232,7 +232,7 @@ pub fn write_model_obj(
         tess.node_count(),
         tess.k
     );
-    write_obj(path, &x, &tess.triangles(), &comment)
+    write_obj(path, &x, tess.triangles(), &comment)
 }
 
 /// The parameters of a fitted model, as written by `--out-params`.

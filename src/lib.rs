@@ -10,8 +10,27 @@
 //!
 //! * [`model`] — the paper's mathematics, pure and tested (no ECS types).
 //! * [`io`] — reading point clouds (OBJ, PLY) and writing meshes and parameters.
+//! * [`plugin`] — [`DeformableSqPlugin`]: models as components, simulated by one chained system set.
+//! * [`render`] — each model drawn as a dynamic mesh; `debug_render` (feature) draws data and springs.
 //! * [`synthetic`] — deterministic test shapes: the paper's egg and mug, sampled superquadrics.
 
+#[cfg(feature = "debug_render")]
+pub mod debug_render;
 pub mod io;
 pub mod model;
+pub mod plugin;
+pub mod render;
 pub mod synthetic;
+
+pub use plugin::{DeformableSqPlugin, DeformableSqSystems};
+
+/// The types a Bevy app needs: `use bevy_deformable_sq::prelude::*;`.
+pub mod prelude {
+    #[cfg(feature = "debug_render")]
+    pub use crate::debug_render::{DebugRenderConfig, DeformableSqDebugPlugin};
+    pub use crate::plugin::{
+        DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, LocalDofs, ModelSettings,
+        RangeData, RigidState, SimControl, Spring, SpringForces,
+    };
+    pub use crate::render::{ModelColor, ModelMesh};
+}

@@ -99,11 +99,14 @@ impl ModelState {
 
     /// World positions x_i = c + R p_i of every node (eq. 2).
     pub fn node_positions(&self, tess: &Tessellation, out: &mut Vec<DVec3>) {
-        let r = rotation_matrix(self.rotation);
-        self.model_points(tess, out);
-        for p in out.iter_mut() {
-            *p = self.translation + r * *p;
-        }
+        node_positions(
+            tess,
+            self.translation,
+            self.rotation,
+            &self.shape,
+            &self.displacement,
+            out,
+        );
     }
 
     /// World positions of the global shape alone, x_i = c + R s_i (the superquadric without d).
@@ -119,6 +122,24 @@ impl ModelState {
     pub fn position_at(&self, node_x: &[DVec3], at: &ElementPoint) -> DVec3 {
         at.interpolate(|n| node_x[n])
     }
+}
+
+/// World positions x_i = c + R (s_i + d_i) of every node (eqs. 2, 3) from the parts of a state.
+/// Displacements missing at the end of `displacement` count as zero.
+pub fn node_positions(
+    tess: &Tessellation,
+    translation: DVec3,
+    rotation: DQuat,
+    shape_q: &SuperquadricParams,
+    displacement: &[DVec3],
+    out: &mut Vec<DVec3>,
+) {
+    let r = rotation_matrix(rotation);
+    out.clear();
+    out.extend(tess.trig.iter().enumerate().map(|(i, t)| {
+        let d = displacement.get(i).copied().unwrap_or(DVec3::ZERO);
+        translation + r * (shape(shape_q, t) + d)
+    }));
 }
 
 /// Point forces spread to the nodes, with the stiffness weight κ_i of the springs among them.

@@ -221,6 +221,8 @@ pub struct Tessellation {
     pub north_matrices: ElementMatrices<3>,
     /// The shared matrices of every south-cap triangle.
     pub south_matrices: ElementMatrices<3>,
+    /// The render triangulation (see [`Tessellation::triangles`]).
+    pub tris: Vec<[u32; 3]>,
     /// Lumped nodal area A_i = ∫ N_i du (row sums of the mass matrices); Σ A_i is the area the
     /// elements cover in (u, v).
     pub node_area: Vec<f64>,
@@ -274,7 +276,9 @@ impl Tessellation {
             north_matrices: triangle_element(Cap::North, h_u, h_v),
             south_matrices: triangle_element(Cap::South, h_u, h_v),
             node_area: Vec::new(),
+            tris: Vec::new(),
         };
+        t.tris = t.build_triangles();
         let mut area = vec![0.0; t.node_count()];
         t.for_each_element(|nodes, grad_mass| {
             for (a, &n) in nodes.iter().enumerate() {
@@ -422,8 +426,12 @@ impl Tessellation {
     }
 
     /// The render triangulation: each quad split in two and a fan at each pole, wound so that
-    /// (B − A) × (C − A) points outward on a superquadric.
-    pub fn triangles(&self) -> Vec<[u32; 3]> {
+    /// (B − A) × (C − A) points outward on a superquadric. 2k² triangles.
+    pub fn triangles(&self) -> &[[u32; 3]] {
+        &self.tris
+    }
+
+    fn build_triangles(&self) -> Vec<[u32; 3]> {
         let mut out = Vec::with_capacity(2 * self.quads.len() + 2 * self.k);
         for &[n00, n10, n11, n01] in &self.quads {
             out.push([n00, n01, n11]);

@@ -220,10 +220,12 @@ impl Normalization {
             .sqrt();
         Self { centroid, scale }
     }
-    fn unit_point(&self, p: DVec3) -> DVec3 {
+    /// Maps a point from data units to the unit frame.
+    pub fn unit_point(&self, p: DVec3) -> DVec3 {
         (p - self.centroid) / self.scale
     }
-    fn pose_to_unit(&self, pose: &InitialPose) -> InitialPose {
+    /// Maps a pose from data units to the unit frame.
+    pub fn pose_to_unit(&self, pose: &InitialPose) -> InitialPose {
         let mut shape = pose.shape;
         shape.a /= self.scale;
         InitialPose {
@@ -262,7 +264,8 @@ pub fn validate_points(points: &[DVec3]) -> Result<(), FitError> {
     Ok(())
 }
 
-fn validate_options(o: &FitOptions) -> Result<(), FitError> {
+/// Checks a fit's options.
+pub fn validate_options(o: &FitOptions) -> Result<(), FitError> {
     let d = &o.dynamics;
     let bad = |name: &str, v: f64| FitError::BadOption(format!("{name} = {v} is out of range"));
     for (name, v, ok) in [
@@ -297,6 +300,96 @@ fn validate_options(o: &FitOptions) -> Result<(), FitError> {
         ));
     }
     Ok(())
+}
+
+/// The bookkeeping of one stage of a fit: how the forces and free DOFs are set, when points are
+/// reattached and when the model is at rest. [`fit`] and the plugin's fit driver share it, so a fit
+/// takes the same steps either way.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct StageClock {
+    /// The stage being run.
+    pub stage: Stage,
+    /// Steps since the last reattachment.
+    pub since_reassign: u32,
+}
+
+impl StageClock {
+    /// A clock at the start of `stage`.
+    pub fn new(stage: Stage) -> Self {
+        Self {
+            stage,
+            since_reassign: 0,
+        }
+    }
+
+    /// Whether the local DOFs move in this stage.
+    pub fn local_free(&self, opts: &FitOptions) -> bool {
+        opts.dynamics.free.local && self.stage == Stage::Joint
+    }
+
+    /// Coverage-spring density in this stage (only the placing stage has them).
+    pub fn coverage(&self, opts: &FitOptions) -> f64 {
+        if self.stage == Stage::Cover {
+            opts.coverage
+        } else {
+            0.0
+        }
+    }
+
+    /// After a step whose largest node motion was `motion`: reattaches through `reassign` (which
+    /// returns how many points moved) when `reassign_every` steps have passed or the model is at
+    /// rest, and returns true when the stage is over — at rest right after a reattachment that
+    /// moved at most `settle_fraction` of the `points`.
+    pub fn after_step(
+        &mut self,
+        motion: f64,
+        opts: &FitOptions,
+        points: usize,
+        reassign: impl FnOnce() -> usize,
+    ) -> bool {
+        self.since_reassign += 1;
+        let at_rest = motion < opts.tolerance;
+        if self.since_reassign < opts.reassign_every && !at_rest {
+            return false;
+        }
+        let changed = reassign();
+        self.since_reassign = 0;
+        at_rest && changed as f64 <= opts.settle_fraction * points as f64
+    }
+}
+
+/// The stages a fit runs before choosing among initial hypotheses: placing (when `coverage` > 0)
+/// and the global stage (unless the local DOFs move from the start).
+pub fn global_stages(opts: &FitOptions) -> Vec<Stage> {
+    let mut stages = Vec::new();
+    if opts.coverage > 0.0 {
+        stages.push(Stage::Cover);
+    }
+    if opts.global_first || opts.global_only || !opts.dynamics.free.local {
+        stages.push(Stage::Global);
+    }
+    stages
+}
+
+/// Whether a fit goes on to the joint stage after the global ones.
+pub fn has_joint_stage(opts: &FitOptions) -> bool {
+    !opts.global_only && opts.dynamics.free.local
+}
+
+/// The initial states a fit tries: the three axis hypotheses of the moments frame, or the one
+/// explicit pose.
+pub fn initial_hypotheses(points: &[DVec3], opts: &FitOptions) -> Vec<InitialPose> {
+    match opts.init {
+        Initialization::Moments => axis_hypotheses(&initial_pose(points)).to_vec(),
+        Initialization::Explicit(pose) => vec![pose],
+    }
+}
+
+/// The score by which hypotheses are compared: the mean distance of the points to the surface
+/// through `node_x`.
+pub fn mean_distance(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) -> f64 {
+    let d = point_distances(tess, node_x, points);
+    d.iter().sum::<f64>() / d.len().max(1) as f64
 }
 
 /// One model relaxing under range springs: the state of the loop between steps.
@@ -350,8 +443,8 @@ impl<'a> Relaxation<'a> {
         }
     }
 
-    /// Runs `stage` until the model is at rest right after a reattachment that changed nothing
-    /// (true), or until `budget` total steps (false).
+    /// Runs `stage` until it is over (true; see [`StageClock::after_step`]), or until `budget`
+    /// total steps (false).
     fn run(
         &mut self,
         stage: Stage,
@@ -359,15 +452,11 @@ impl<'a> Relaxation<'a> {
         progress: &mut impl FnMut(&FitProgress),
     ) -> Result<bool, FitError> {
         let tess = self.tess;
-        self.params.free.local = self.opts.dynamics.free.local && stage == Stage::Joint;
-        self.range.coverage = if stage == Stage::Cover {
-            self.opts.coverage
-        } else {
-            0.0
-        };
+        let mut clock = StageClock::new(stage);
+        self.params.free.local = clock.local_free(self.opts);
+        self.range.coverage = clock.coverage(self.opts);
         self.range.reassign(tess, &self.x);
         self.reassignments += 1;
-        let mut since = 0;
         while self.steps < budget {
             self.range.migrate(tess, &self.x);
             self.forces.clear(tess.node_count());
@@ -381,7 +470,6 @@ impl<'a> Relaxation<'a> {
             )
             .map_err(FitError::Step)?;
             self.steps += 1;
-            since += 1;
             if stage != Stage::Joint {
                 self.global_steps += 1;
             }
@@ -397,7 +485,6 @@ impl<'a> Relaxation<'a> {
                 .fold(0.0, f64::max)
                 .sqrt();
             std::mem::swap(&mut self.x, &mut self.x_new);
-            let at_rest = motion < self.opts.tolerance;
             if self.steps.is_multiple_of(100) {
                 let energy = self.range.energy(tess, &self.x)
                     + tess.strain_energy(self.params.w0, self.params.w1, &self.state.displacement);
@@ -409,24 +496,18 @@ impl<'a> Relaxation<'a> {
                     reassignments: self.reassignments,
                 });
             }
-            if since >= self.opts.reassign_every || at_rest {
-                let changed = self.range.reassign(tess, &self.x);
-                self.reassignments += 1;
-                since = 0;
-                let settled =
-                    changed as f64 <= self.opts.settle_fraction * self.range.points.len() as f64;
-                if at_rest && settled {
-                    return Ok(true);
-                }
+            let (range, x) = (&mut self.range, &self.x);
+            let mut reassigned = false;
+            let done = clock.after_step(motion, self.opts, range.points.len(), || {
+                reassigned = true;
+                range.reassign(tess, x)
+            });
+            self.reassignments += reassigned as u32;
+            if done {
+                return Ok(true);
             }
         }
         Ok(false)
-    }
-
-    /// Mean point-to-surface distance of the unit-frame data to the current surface.
-    fn mean_distance(&self) -> f64 {
-        let d = point_distances(self.tess, &self.x, &self.range.points);
-        d.iter().sum::<f64>() / d.len().max(1) as f64
     }
 }
 
@@ -475,12 +556,8 @@ pub fn fit(
     validate_options(opts)?;
     let norm = Normalization::of(points);
     let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
-    let candidates: Vec<InitialPose> = match opts.init {
-        Initialization::Moments => axis_hypotheses(&initial_pose(points)).to_vec(),
-        Initialization::Explicit(pose) => vec![pose],
-    };
+    let candidates = initial_hypotheses(points, opts);
     let tess = Tessellation::new(opts.k);
-    let global_stage = opts.global_first || opts.global_only || !opts.dynamics.free.local;
     let mut best: Option<(f64, Relaxation, bool, InitialPose)> = None;
     let mut steps_used = 0;
     for (i, initial) in candidates.iter().enumerate() {
@@ -488,14 +565,11 @@ pub fn fit(
         let share = (opts.max_steps - steps_used) / (candidates.len() - i) as u32;
         let mut relax = Relaxation::new(&tess, opts, &unit, &norm.pose_to_unit(initial));
         let mut converged = true;
-        if opts.coverage > 0.0 {
-            converged &= relax.run(Stage::Cover, share, &mut progress)?;
-        }
-        if global_stage {
-            converged &= relax.run(Stage::Global, share, &mut progress)?;
+        for stage in global_stages(opts) {
+            converged &= relax.run(stage, share, &mut progress)?;
         }
         steps_used += relax.steps;
-        let score = relax.mean_distance();
+        let score = mean_distance(&tess, &relax.x, &relax.range.points);
         if best.as_ref().is_none_or(|b| score < b.0) {
             best = Some((score, relax, converged, *initial));
         }
@@ -504,7 +578,7 @@ pub fn fit(
         return Err(FitError::BadOption("no initial state to start from".into()));
     };
     let other_steps = steps_used - relax.steps;
-    if !opts.global_only && opts.dynamics.free.local {
+    if has_joint_stage(opts) {
         converged = relax.run(Stage::Joint, opts.max_steps - other_steps, &mut progress)?;
     }
     let state = norm.state_to_data(&relax.state);

@@ -1,0 +1,88 @@
+//! [`DeformableSqDebugPlugin`] (feature `debug_render`): gizmos for what pulls on each model —
+//! its range data points, the spring from each point to its point of influence on the surface,
+//! and user springs. Separate from the simulation, like avian's debug rendering.
+
+use crate::plugin::{FemMesh, RangeData, Scratch, SpringForces};
+use bevy::prelude::*;
+
+/// What the debug gizmos draw.
+#[derive(Resource, Reflect, Clone, Copy, Debug, PartialEq)]
+#[reflect(Resource, Debug, PartialEq)]
+pub struct DebugRenderConfig {
+    /// Draw each range data point as a small cross.
+    pub points: bool,
+    /// Draw the spring from each data point to its point of influence.
+    pub data_springs: bool,
+    /// Draw user springs (mouse springs).
+    pub user_springs: bool,
+    /// Half size of a data point's cross, in world units.
+    pub point_size: f32,
+}
+
+impl Default for DebugRenderConfig {
+    fn default() -> Self {
+        Self {
+            points: true,
+            data_springs: true,
+            user_springs: true,
+            point_size: 0.01,
+        }
+    }
+}
+
+/// Draws range data, data springs and user springs with gizmos.
+pub struct DeformableSqDebugPlugin;
+
+impl Plugin for DeformableSqDebugPlugin {
+    fn build(&self, app: &mut App) {
+        app.init_resource::<DebugRenderConfig>()
+            .register_type::<DebugRenderConfig>()
+            .add_systems(PostUpdate, draw_debug);
+    }
+}
+
+/// The gizmo system.
+pub fn draw_debug(
+    mut gizmos: Gizmos,
+    config: Res<DebugRenderConfig>,
+    models: Query<(
+        &FemMesh,
+        &Scratch,
+        Option<&RangeData>,
+        Option<&SpringForces>,
+    )>,
+) {
+    let point_colour = Color::srgb(0.95, 0.95, 0.2);
+    let spring_colour = Color::srgba(0.9, 0.9, 0.9, 0.5);
+    let user_colour = Color::srgb(1.0, 0.2, 0.2);
+    for (fem, scratch, range, springs) in &models {
+        let x = scratch.node_positions();
+        let Some(tess) = fem.get() else { continue };
+        if x.len() != tess.node_count() {
+            continue;
+        }
+        if let Some(range) = range {
+            for (i, r) in range.forces.points.iter().enumerate() {
+                let r = r.as_vec3();
+                if config.points {
+                    gizmos.cross(
+                        Isometry3d::from_translation(r),
+                        config.point_size,
+                        point_colour,
+                    );
+                }
+                if config.data_springs
+                    && let Some(inf) = range.forces.influence.get(i)
+                {
+                    gizmos.line(r, inf.at.interpolate(|k| x[k]).as_vec3(), spring_colour);
+                }
+            }
+        }
+        if config.user_springs {
+            for s in springs.map(|s| s.0.as_slice()).unwrap_or(&[]) {
+                let at = tess.locate(s.u, s.v).interpolate(|k| x[k]);
+                gizmos.line(at.as_vec3(), s.anchor.as_vec3(), user_colour);
+            }
+        }
+    }
+}

@@ -1,0 +1,445 @@
+//! The components a deformable superquadric is made of.
+//!
+//! Spawning `(GlobalShape { .. }, RigidState { .. })` makes a complete model: the other components
+//! are required components with defaults. The state q of the paper is split as the users asked:
+//! [`RigidState`] (q_c, q_θ), [`GlobalShape`] (q_s), [`LocalDofs`] (q_d), on the tessellation of
+//! [`FemMesh`]. Every one of them may be changed from outside (an inspector); the next step reads
+//! them as they are.
+
+use crate::model::dynamics::{DynamicsParams, FreeDofs, ModelState, NodalForces, Workspace};
+use crate::model::fem::Tessellation;
+use crate::model::fit::{FitOptions, Stage, StageClock};
+use crate::model::forces::range::{InfluenceMode, RangeForces};
+use crate::model::superquadric::SuperquadricParams;
+use bevy::math::{DQuat, DVec3};
+use bevy::prelude::*;
+use std::sync::Arc;
+
+/// The global deformation parameters q_s = (a, a1, a2, a3, ε1, ε2) of eq. (5).
+#[derive(Component, Reflect, Clone, Copy, Debug, PartialEq)]
+#[reflect(Component, Default, Debug, PartialEq)]
+#[cfg_attr(feature = "serialize", derive(serde::Serialize, serde::Deserialize))]
+#[require(RigidState, LocalDofs, FemMesh, ModelSettings, SimControl, Scratch)]
+pub struct GlobalShape {
+    /// Scale a.
+    pub a: f64,
+    /// Aspect ratio along x, 0 < a1 ≤ 1.
+    pub a1: f64,
+    /// Aspect ratio along y, 0 < a2 ≤ 1.
+    pub a2: f64,
+    /// Aspect ratio along z, 0 < a3 ≤ 1.
+    pub a3: f64,
+    /// Squareness ε1 (latitude profile).
+    pub e1: f64,
+    /// Squareness ε2 (longitude cross-section).
+    pub e2: f64,
+}
+
+impl Default for GlobalShape {
+    /// The unit sphere.
+    fn default() -> Self {
+        SuperquadricParams::default().into()
+    }
+}
+
+impl From<SuperquadricParams> for GlobalShape {
+    fn from(q: SuperquadricParams) -> Self {
+        Self {
+            a: q.a,
+            a1: q.a1,
+            a2: q.a2,
+            a3: q.a3,
+            e1: q.e1,
+            e2: q.e2,
+        }
+    }
+}
+
+impl From<GlobalShape> for SuperquadricParams {
+    fn from(g: GlobalShape) -> Self {
+        Self {
+            a: g.a,
+            a1: g.a1,
+            a2: g.a2,
+            a3: g.a3,
+            e1: g.e1,
+            e2: g.e2,
+        }
+    }
+}
+
+/// The rigid coordinates q_c (translation c) and q_θ (unit quaternion) of the model frame, in
+/// world space (eq. 2). Write-back copies them into the entity's [`Transform`].
+#[derive(Component, Reflect, Clone, Copy, Debug, PartialEq)]
+#[reflect(Component, Default, Debug, PartialEq)]
+#[cfg_attr(feature = "serialize", derive(serde::Serialize, serde::Deserialize))]
+#[require(Transform)]
+pub struct RigidState {
+    /// q_c: the model centre in world space.
+    pub translation: DVec3,
+    /// q_θ: the model frame's orientation.
+    pub rotation: DQuat,
+}
+
+impl Default for RigidState {
+    fn default() -> Self {
+        Self {
+            translation: DVec3::ZERO,
+            rotation: DQuat::IDENTITY,
+        }
+    }
+}
+
+/// The local displacement d_i of every node, in the model frame (q_d, eq. 7). Empty or wrongly
+/// sized vectors are reset to zero displacement on the next step.
+#[derive(Component, Reflect, Clone, Debug, Default, PartialEq)]
+#[reflect(Component, Default, Debug, PartialEq)]
+#[cfg_attr(feature = "serialize", derive(serde::Serialize, serde::Deserialize))]
+pub struct LocalDofs {
+    /// One displacement per node of the model's [`FemMesh`].
+    pub displacement: Vec<DVec3>,
+}
+
+/// The tessellation (k rings × k longitudes + 2 poles) and what the element-by-element stiffness
+/// needs. Models of the same k share one [`Tessellation`] through the [`FemMeshCache`].
+#[derive(Component, Reflect, Clone, Debug)]
+#[reflect(Component, Default, Debug)]
+pub struct FemMesh {
+    /// Rings and longitudes; change it and the model is re-tessellated (its local DOFs reset).
+    pub k: usize,
+    /// The tessellation for `k`, filled in on the first step.
+    #[reflect(ignore)]
+    pub tessellation: Option<Arc<Tessellation>>,
+}
+
+impl Default for FemMesh {
+    /// k = 31: the paper's 963 nodes.
+    fn default() -> Self {
+        Self::new(31)
+    }
+}
+
+impl FemMesh {
+    /// A mesh of k rings × k longitudes, tessellated on first use.
+    pub fn new(k: usize) -> Self {
+        Self {
+            k,
+            tessellation: None,
+        }
+    }
+
+    /// The tessellation, if it is built and matches `k`.
+    pub fn get(&self) -> Option<&Arc<Tessellation>> {
+        self.tessellation
+            .as_ref()
+            .filter(|t| t.k == self.k.max(crate::model::fem::MIN_K))
+    }
+}
+
+/// Shared tessellations by k, so that models of the same resolution share one.
+#[derive(Resource, Default)]
+pub struct FemMeshCache(pub std::collections::HashMap<usize, Arc<Tessellation>>);
+
+impl FemMeshCache {
+    /// The tessellation for k, built once.
+    pub fn get(&mut self, k: usize) -> Arc<Tessellation> {
+        let k = k.max(crate::model::fem::MIN_K);
+        self.0
+            .entry(k)
+            .or_insert_with(|| Arc::new(Tessellation::new(k)))
+            .clone()
+    }
+}
+
+/// How a model simulates: stiffness, damping, time step and reattachment interval.
+#[derive(Component, Reflect, Clone, Copy, Debug, PartialEq)]
+#[reflect(Component, Default, Debug, PartialEq)]
+#[cfg_attr(feature = "serialize", derive(serde::Serialize, serde::Deserialize))]
+pub struct ModelSettings {
+    /// Membrane stiffness on |d|² (eq. 13).
+    pub w0: f64,
+    /// Membrane stiffness on |∂d/∂u|² + |∂d/∂v|² (eq. 13).
+    pub w1: f64,
+    /// Euler time step Δt (eq. 15) per simulation step.
+    pub dt: f64,
+    /// Global damping density γ_g (Δt/γ_g is the Gauss–Newton step fraction).
+    pub gamma_global: f64,
+    /// Local damping density γ_d.
+    pub gamma_local: f64,
+    /// Reattach range points to their nearest nodes every this many steps (the paper: 200).
+    pub reassign_every: u32,
+    /// Freeze the local DOFs (a pure superquadric).
+    pub global_only: bool,
+    /// Hold the local DOFs for the first this many steps after spawn or reset, so that the
+    /// superquadric captures what it can before the membrane takes the rest (the fitter's
+    /// "global first"); 0 lets both move from the start, as in the paper.
+    pub hold_local_steps: u64,
+    /// Freeze ε1 and ε2 (the paper's image experiments).
+    pub fix_epsilon: bool,
+}
+
+impl Default for ModelSettings {
+    /// The fitter's defaults: w0 = 1e-3, w1 = 0.1, Δt = 0.05, γ_g = 0.1, γ_d = 1, reattachment
+    /// every 200 steps.
+    fn default() -> Self {
+        Self::from_fit(&FitOptions::default())
+    }
+}
+
+impl ModelSettings {
+    /// The settings a fit with `opts` steps with (its damping, stiffness and time step).
+    pub fn from_fit(opts: &FitOptions) -> Self {
+        let d = &opts.dynamics;
+        Self {
+            w0: d.w0,
+            w1: d.w1,
+            dt: d.dt,
+            gamma_global: d.gamma_global,
+            gamma_local: d.gamma_local,
+            reassign_every: opts.reassign_every,
+            global_only: !d.free.local,
+            hold_local_steps: 0,
+            fix_epsilon: !(d.free.shape[4] || d.free.shape[5]),
+        }
+    }
+
+    /// The core's dynamics parameters at step number `step` (see `hold_local_steps`).
+    pub fn dynamics_at(&self, step: u64) -> DynamicsParams {
+        let mut d = self.dynamics();
+        d.free.local &= step >= self.hold_local_steps;
+        d
+    }
+
+    /// The core's dynamics parameters.
+    pub fn dynamics(&self) -> DynamicsParams {
+        let mut shape = [true; 6];
+        if self.fix_epsilon {
+            shape[4] = false;
+            shape[5] = false;
+        }
+        DynamicsParams {
+            w0: self.w0,
+            w1: self.w1,
+            dt: self.dt,
+            gamma_global: self.gamma_global,
+            gamma_local: self.gamma_local,
+            free: FreeDofs {
+                shape,
+                local: !self.global_only,
+                ..FreeDofs::default()
+            },
+            ..DynamicsParams::default()
+        }
+    }
+}
+
+/// Pause, single-step and reset, and what the simulation did.
+#[derive(Component, Reflect, Clone, Debug, Default, PartialEq)]
+#[reflect(Component, Default, Debug, PartialEq)]
+pub struct SimControl {
+    /// No steps while paused.
+    pub paused: bool,
+    /// Take this many steps even while paused (single-stepping), then stay paused.
+    pub step_requests: u32,
+    /// Return to the state the model was spawned with on the next step.
+    pub reset_requested: bool,
+    /// Steps taken since spawn or reset.
+    pub steps: u64,
+    /// Set when a step was refused (non-finite); the model no longer steps until reset.
+    pub frozen: bool,
+    /// Why the model froze.
+    pub error: Option<String>,
+    /// Sub-steps the last step took for stability (1 when within the bound).
+    pub last_substeps: u32,
+}
+
+/// Range data attached to a model: points in world space pulling on their points of influence
+/// (eq. 22). `forces.influence` holds the current point → node (or element) attachment, readable
+/// by other systems.
+#[derive(Component, Clone, Debug)]
+pub struct RangeData {
+    /// The springs: points, strength β, influence mode and the current attachments.
+    pub forces: RangeForces,
+    /// Reattachments done so far.
+    pub reassignments: u64,
+}
+
+impl RangeData {
+    /// Range data with strength β = 4, the paper's nearest-node attachment and no coverage
+    /// springs (the paper's forces).
+    pub fn new(points: Vec<DVec3>) -> Self {
+        let mut forces = RangeForces::new(points, 4.0, InfluenceMode::NearestNode);
+        forces.coverage = 0.0;
+        Self {
+            forces,
+            reassignments: 0,
+        }
+    }
+
+    /// The same with model-to-data coverage springs of density `coverage` × β (see
+    /// [`crate::model::forces::range`]; [`DEFAULT_COVERAGE`](crate::model::forces::range::DEFAULT_COVERAGE) is what the fit loop places with).
+    pub fn with_coverage(mut self, coverage: f64) -> Self {
+        self.forces.coverage = coverage;
+        self
+    }
+
+    /// The same with points of influence migrating over the surface (Fig. 3).
+    pub fn migrating(mut self) -> Self {
+        self.forces.mode = InfluenceMode::Migrating { rate: 0.5 };
+        self
+    }
+
+    /// The same with strength β.
+    pub fn with_beta(mut self, beta: f64) -> Self {
+        self.forces.beta = beta;
+        self
+    }
+
+    /// The node each data point is attached to (the first node of its element when it lies
+    /// inside one); empty before the first reattachment.
+    pub fn attached_nodes(&self) -> impl Iterator<Item = u32> + '_ {
+        self.forces.influence.iter().map(|i| i.at.nodes[0])
+    }
+}
+
+/// A spring from a material point on the model's surface to a world-space anchor (a mouse spring).
+/// Several may act on one model.
+#[derive(Reflect, Clone, Copy, Debug, PartialEq)]
+pub struct Spring {
+    /// Material latitude u of the grabbed surface point.
+    pub u: f64,
+    /// Material longitude v of the grabbed surface point.
+    pub v: f64,
+    /// World-space anchor.
+    pub anchor: DVec3,
+    /// Spring constant (force per unit length).
+    pub stiffness: f64,
+}
+
+/// User springs acting on a model.
+#[derive(Component, Reflect, Clone, Debug, Default, PartialEq)]
+#[reflect(Component, Default, Debug, PartialEq)]
+pub struct SpringForces(pub Vec<Spring>);
+
+/// Drives a model through the stages of a fit to equilibrium, exactly as
+/// [`crate::model::fit::fit`] does (placing, global, joint; reattaching every `reassign_every`
+/// steps and at rest; see [`StageClock`]). While a model has one, the driver, not the periodic
+/// reassignment, decides when points are reattached. When the last stage ends the model is paused
+/// and `done` is set.
+#[derive(Component, Clone, Debug)]
+pub struct FitDriver {
+    /// The fit's options (tolerance, reattachment interval, coverage, …).
+    pub options: FitOptions,
+    /// Stages still to run, the current one first.
+    pub stages: std::collections::VecDeque<Stage>,
+    /// The current stage's clock; `None` until the stage has been entered.
+    pub clock: Option<StageClock>,
+    /// The model stops after this many steps in all.
+    pub budget: u64,
+    /// True while every finished stage ended at rest (not at the budget).
+    pub converged: bool,
+    /// True when no stage is left.
+    pub done: bool,
+    /// Steps taken in stages other than the joint one.
+    pub global_steps: u64,
+    /// Reattachments done by the driver.
+    pub reassignments: u64,
+    /// Steps whose local update was sub-stepped for stability.
+    pub substepped_steps: u64,
+    pub(crate) seen_steps: u64,
+}
+
+impl FitDriver {
+    /// A driver that runs `stages` within `budget` steps.
+    pub fn new(options: FitOptions, stages: impl IntoIterator<Item = Stage>, budget: u64) -> Self {
+        let stages: std::collections::VecDeque<Stage> = stages.into_iter().collect();
+        Self {
+            done: stages.is_empty(),
+            options,
+            stages,
+            clock: None,
+            budget,
+            converged: true,
+            global_steps: 0,
+            reassignments: 0,
+            substepped_steps: 0,
+            seen_steps: 0,
+        }
+    }
+
+    /// Queues more stages (e.g. the joint stage after choosing a hypothesis) with a new budget;
+    /// `converged` then speaks of these stages only, as in `fit`.
+    pub fn continue_with(&mut self, stages: impl IntoIterator<Item = Stage>, budget: u64) {
+        self.stages.extend(stages);
+        self.converged = true;
+        self.budget = budget;
+        self.done = self.stages.is_empty();
+    }
+}
+
+/// Per-model buffers reused every step (forces, workspace, node positions) and the state at spawn
+/// for reset.
+#[derive(Component, Clone, Debug, Default)]
+pub struct Scratch {
+    pub(crate) forces: NodalForces,
+    pub(crate) workspace: Workspace,
+    pub(crate) node_x: Vec<DVec3>,
+    pub(crate) x_new: Vec<DVec3>,
+    pub(crate) initial: Option<(RigidState, GlobalShape, LocalDofs)>,
+}
+
+impl Scratch {
+    /// World node positions as of the last step.
+    pub fn node_positions(&self) -> &[DVec3] {
+        &self.node_x
+    }
+}
+
+/// World node positions x_i = c + R (s_i + d_i) of a model, from its components.
+pub fn world_positions(
+    tess: &Tessellation,
+    rigid: &RigidState,
+    shape: &GlobalShape,
+    local: &LocalDofs,
+    out: &mut Vec<DVec3>,
+) {
+    crate::model::dynamics::node_positions(
+        tess,
+        rigid.translation,
+        rigid.rotation,
+        &(*shape).into(),
+        &local.displacement,
+        out,
+    );
+}
+
+/// Assembles the core's [`ModelState`] from the components (moving the displacement out).
+pub(crate) fn take_state(
+    rigid: &RigidState,
+    shape: &GlobalShape,
+    local: &mut LocalDofs,
+) -> ModelState {
+    ModelState {
+        translation: rigid.translation,
+        rotation: rigid.rotation,
+        shape: (*shape).into(),
+        displacement: std::mem::take(&mut local.displacement),
+    }
+}
+
+/// Writes the core's state back into the components, only where values changed (so change
+/// detection stays meaningful).
+pub(crate) fn put_state(
+    state: ModelState,
+    rigid: &mut Mut<RigidState>,
+    shape: &mut Mut<GlobalShape>,
+    local: &mut Mut<LocalDofs>,
+) {
+    let new_rigid = RigidState {
+        translation: state.translation,
+        rotation: state.rotation,
+    };
+    rigid.set_if_neq(new_rigid);
+    shape.set_if_neq(state.shape.into());
+    local.displacement = state.displacement;
+}

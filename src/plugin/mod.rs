@@ -1,0 +1,97 @@
+//! [`DeformableSqPlugin`]: deformable superquadrics as Bevy entities.
+//!
+//! Add the plugin, spawn `(GlobalShape { .. }, RigidState { .. })`, optionally with
+//! [`RangeData`] or [`SpringForces`], and the model simulates in the plugin's schedule (default
+//! [`FixedUpdate`]) through one chained system set, [`DeformableSqSystems`], whose stages are the
+//! paper's loop. With the render plugins present each model is also a [`Mesh3d`] whose vertices
+//! follow the surface (see [`crate::render`]); with `MinimalPlugins` it simulates headless.
+
+pub mod components;
+pub mod headless;
+pub mod systems;
+
+pub use components::*;
+
+use bevy::ecs::schedule::{InternedScheduleLabel, ScheduleLabel};
+use bevy::prelude::*;
+
+/// The stages of one simulation step, chained in this order in the plugin's schedule.
+#[derive(SystemSet, Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum DeformableSqSystems {
+    /// Share tessellations, size buffers, record spawn states, carry out resets, and freeze models
+    /// made non-finite from outside.
+    Prepare,
+    /// Reattach range points to their nearest nodes every `reassign_every` steps (section VI-B).
+    Reassign,
+    /// Turn data and user springs into nodal forces (eq. 22).
+    GatherForces,
+    /// One explicit Euler step of C q̇ + K q = f_q (eq. 15).
+    Integrate,
+    /// Models with a [`FitDriver`]: rest detection, reattachment and the stages of a fit.
+    Converge,
+    /// Copy the model frame into `Transform` (and, in debug builds, check every state is finite).
+    WriteBack,
+}
+
+/// Simulates deformable superquadrics. `schedule` is where the steps run: one step per run.
+pub struct DeformableSqPlugin {
+    /// The schedule the [`DeformableSqSystems`] run in (default [`FixedUpdate`]).
+    pub schedule: InternedScheduleLabel,
+}
+
+impl Default for DeformableSqPlugin {
+    fn default() -> Self {
+        Self {
+            schedule: FixedUpdate.intern(),
+        }
+    }
+}
+
+impl DeformableSqPlugin {
+    /// The plugin running in another schedule (e.g. `Update` for one step per frame).
+    pub fn in_schedule(schedule: impl ScheduleLabel) -> Self {
+        Self {
+            schedule: schedule.intern(),
+        }
+    }
+}
+
+impl Plugin for DeformableSqPlugin {
+    fn build(&self, app: &mut App) {
+        use DeformableSqSystems::*;
+        app.init_resource::<FemMeshCache>()
+            .register_type::<GlobalShape>()
+            .register_type::<RigidState>()
+            .register_type::<LocalDofs>()
+            .register_type::<FemMesh>()
+            .register_type::<ModelSettings>()
+            .register_type::<SimControl>()
+            .register_type::<SpringForces>()
+            .configure_sets(
+                self.schedule,
+                (
+                    Prepare,
+                    Reassign,
+                    GatherForces,
+                    Integrate,
+                    Converge,
+                    WriteBack,
+                )
+                    .chain(),
+            )
+            .add_systems(
+                self.schedule,
+                (
+                    systems::prepare.in_set(Prepare),
+                    systems::reassign.in_set(Reassign),
+                    systems::gather_forces.in_set(GatherForces),
+                    systems::integrate.in_set(Integrate),
+                    systems::drive_fits.in_set(Converge),
+                    systems::write_transforms.in_set(WriteBack),
+                ),
+            );
+        #[cfg(debug_assertions)]
+        app.add_systems(self.schedule, systems::assert_finite.in_set(WriteBack));
+        crate::render::build(app);
+    }
+}

@@ -1,0 +1,334 @@
+//! Thin systems over the pure core, one per stage of the paper's loop (see
+//! [`DeformableSqSystems`](super::DeformableSqSystems)). Per-model work runs in parallel
+//! (`par_iter_mut`).
+
+use super::components::*;
+use crate::model::dynamics::step;
+use crate::model::fit::{Stage, StageClock};
+use crate::model::superquadric::SuperquadricParams;
+use bevy::math::DVec3;
+use bevy::prelude::*;
+
+/// True when the model takes a step this run.
+fn stepping(control: &SimControl) -> bool {
+    !control.frozen && (!control.paused || control.step_requests > 0)
+}
+
+/// The first non-finite component of a model, by name.
+pub fn first_non_finite(
+    rigid: &RigidState,
+    shape: &GlobalShape,
+    local: &LocalDofs,
+) -> Option<&'static str> {
+    if !(rigid.translation.is_finite() && rigid.rotation.is_finite()) {
+        Some("RigidState")
+    } else if !SuperquadricParams::from(*shape).is_finite() {
+        Some("GlobalShape")
+    } else if !local.displacement.iter().all(|d| d.is_finite()) {
+        Some("LocalDofs")
+    } else {
+        None
+    }
+}
+
+/// Stage `Prepare`: shares tessellations, sizes the local DOFs and buffers to the mesh, records
+/// the spawn state, carries out resets, and freezes any model whose state was made non-finite
+/// from outside (naming the entity and component).
+pub fn prepare(
+    mut cache: ResMut<FemMeshCache>,
+    mut models: Query<(
+        Entity,
+        &mut FemMesh,
+        &mut RigidState,
+        &mut GlobalShape,
+        &mut LocalDofs,
+        &mut SimControl,
+        &mut Scratch,
+        Option<&mut RangeData>,
+    )>,
+) {
+    for (entity, mut fem, mut rigid, mut shape, mut local, mut control, mut scratch, range) in
+        &mut models
+    {
+        if fem.get().is_none() {
+            fem.tessellation = Some(cache.get(fem.k));
+        }
+        let Some(tess) = fem.get().cloned() else {
+            continue;
+        };
+        let n = tess.node_count();
+        if local.displacement.len() != n {
+            local.displacement = vec![DVec3::ZERO; n];
+            scratch.initial = None;
+            if let Some(mut range) = range {
+                range.forces.influence.clear();
+            }
+        } else if control.reset_requested {
+            if let Some((r, s, l)) = scratch.initial.clone() {
+                *rigid = r;
+                *shape = s;
+                *local = l;
+            }
+            if let Some(mut range) = range {
+                range.forces.influence.clear();
+            }
+            *control = SimControl {
+                paused: control.paused,
+                ..default()
+            };
+        }
+        if scratch.initial.is_none() {
+            scratch.initial = Some((*rigid, *shape, local.clone()));
+        }
+        if scratch.forces.force.len() != n {
+            scratch.forces.clear(n);
+        }
+        if !control.frozen
+            && let Some(what) = first_non_finite(&rigid, &shape, &local)
+        {
+            control.frozen = true;
+            control.error = Some(format!(
+                "{what} is not finite; the model is frozen until reset"
+            ));
+            error!("deformable superquadric {entity}: {what} is not finite; frozen until reset");
+        }
+    }
+}
+
+/// Stage `Reassign`: every `reassign_every` steps (and before the first step), reattaches each
+/// range point to its point of influence (nearest node, k-d tree). A model with a [`FitDriver`]
+/// is reattached when it enters a stage, and otherwise when its driver says so (stage `Converge`).
+pub fn reassign(
+    mut models: Query<(
+        &FemMesh,
+        &RigidState,
+        &GlobalShape,
+        &LocalDofs,
+        &mut ModelSettings,
+        &SimControl,
+        &mut Scratch,
+        &mut RangeData,
+        Option<&mut FitDriver>,
+    )>,
+) {
+    models.par_iter_mut().for_each(
+        |(fem, rigid, shape, local, mut settings, control, mut scratch, mut range, driver)| {
+            let Some(tess) = fem.get() else { return };
+            if !stepping(control) {
+                return;
+            }
+            let due = match driver {
+                Some(mut driver) => {
+                    match (driver.done, driver.clock, driver.stages.front().copied()) {
+                        (false, None, Some(stage)) => {
+                            let clock = StageClock::new(stage);
+                            range.forces.coverage = clock.coverage(&driver.options);
+                            settings.set_if_neq(ModelSettings {
+                                global_only: !clock.local_free(&driver.options),
+                                ..*settings
+                            });
+                            driver.clock = Some(clock);
+                            driver.reassignments += 1;
+                            true
+                        }
+                        _ => false,
+                    }
+                }
+                None => {
+                    control
+                        .steps
+                        .is_multiple_of(settings.reassign_every.max(1) as u64)
+                        || range.forces.influence.len() != range.forces.points.len()
+                }
+            };
+            if !due {
+                return;
+            }
+            world_positions(tess, rigid, shape, local, &mut scratch.node_x);
+            let scratch = &mut *scratch;
+            range.forces.reassign(tess, &scratch.node_x);
+            range.reassignments += 1;
+        },
+    );
+}
+
+/// Stage `GatherForces`: range springs (eq. 22) with their migration, and user springs, spread
+/// to the nodes.
+pub fn gather_forces(
+    mut models: Query<(
+        &FemMesh,
+        &RigidState,
+        &GlobalShape,
+        &LocalDofs,
+        &SimControl,
+        &mut Scratch,
+        Option<&mut RangeData>,
+        Option<&SpringForces>,
+    )>,
+) {
+    models.par_iter_mut().for_each(
+        |(fem, rigid, shape, local, control, mut scratch, range, springs)| {
+            let Some(tess) = fem.get() else { return };
+            if !stepping(control) {
+                return;
+            }
+            let scratch = &mut *scratch;
+            world_positions(tess, rigid, shape, local, &mut scratch.node_x);
+            scratch.forces.clear(tess.node_count());
+            if let Some(mut range) = range {
+                range.forces.migrate(tess, &scratch.node_x);
+                range
+                    .forces
+                    .accumulate(tess, &scratch.node_x, &mut scratch.forces);
+            }
+            for spring in springs.map(|s| s.0.as_slice()).unwrap_or(&[]) {
+                let at = tess.locate(spring.u, spring.v);
+                let x = at.interpolate(|k| scratch.node_x[k]);
+                scratch.forces.add(
+                    &at,
+                    spring.stiffness * (spring.anchor - x),
+                    spring.stiffness,
+                );
+            }
+        },
+    );
+}
+
+/// Stage `Integrate`: one explicit Euler step (eq. 15) per model. A refused step (non-finite)
+/// freezes the model and logs the error; nothing non-finite is written.
+pub fn integrate(
+    mut models: Query<(
+        Entity,
+        &FemMesh,
+        &mut RigidState,
+        &mut GlobalShape,
+        &mut LocalDofs,
+        &ModelSettings,
+        &mut SimControl,
+        &mut Scratch,
+    )>,
+) {
+    models.par_iter_mut().for_each(
+        |(entity, fem, mut rigid, mut shape, mut local, settings, mut control, mut scratch)| {
+            let Some(tess) = fem.get() else { return };
+            if !stepping(&control) {
+                return;
+            }
+            let mut state = take_state(&rigid, &shape, &mut local);
+            let scratch = &mut *scratch;
+            match step(
+                tess,
+                &mut state,
+                &scratch.forces,
+                &settings.dynamics_at(control.steps),
+                &mut scratch.workspace,
+            ) {
+                Ok(report) => {
+                    control.steps += 1;
+                    control.last_substeps = report.substeps;
+                }
+                Err(e) => {
+                    control.frozen = true;
+                    control.error = Some(e.to_string());
+                    error!("deformable superquadric {entity}: {e}; frozen until reset");
+                }
+            }
+            if control.paused {
+                control.step_requests = control.step_requests.saturating_sub(1);
+            }
+            put_state(state, &mut rigid, &mut shape, &mut local);
+        },
+    );
+}
+
+/// Stage `Converge`: for models with a [`FitDriver`], measures how far the last step moved the
+/// nodes, reattaches when the stage's clock says so and moves on to the next stage when this one is
+/// at rest (see [`StageClock::after_step`]); pauses the model when the fit is done.
+pub fn drive_fits(
+    mut models: Query<(
+        &FemMesh,
+        &RigidState,
+        &GlobalShape,
+        &LocalDofs,
+        &mut SimControl,
+        &mut Scratch,
+        &mut RangeData,
+        &mut FitDriver,
+    )>,
+) {
+    models.par_iter_mut().for_each(
+        |(fem, rigid, shape, local, mut control, mut scratch, mut range, mut driver)| {
+            let Some(tess) = fem.get() else { return };
+            if driver.done || control.steps == driver.seen_steps {
+                return;
+            }
+            driver.seen_steps = control.steps;
+            let Some(mut clock) = driver.clock else {
+                return;
+            };
+            if clock.stage != Stage::Joint {
+                driver.global_steps += 1;
+            }
+            if control.last_substeps > 1 {
+                driver.substepped_steps += 1;
+            }
+            let scratch = &mut *scratch;
+            world_positions(tess, rigid, shape, local, &mut scratch.x_new);
+            let motion = scratch
+                .node_x
+                .iter()
+                .zip(&scratch.x_new)
+                .map(|(a, b)| a.distance_squared(*b))
+                .fold(0.0, f64::max)
+                .sqrt();
+            std::mem::swap(&mut scratch.node_x, &mut scratch.x_new);
+            let mut reassigned = false;
+            let points = range.forces.points.len();
+            let ended = clock.after_step(motion, &driver.options, points, || {
+                reassigned = true;
+                range.forces.reassign(tess, &scratch.node_x)
+            });
+            driver.reassignments += reassigned as u64;
+            range.reassignments += reassigned as u64;
+            let out_of_steps = control.steps >= driver.budget;
+            if !(ended || out_of_steps) {
+                driver.clock = Some(clock);
+                return;
+            }
+            driver.converged &= ended;
+            driver.stages.pop_front();
+            driver.clock = None;
+            if out_of_steps && !driver.stages.is_empty() {
+                // As in `fit`: stages entered with no steps left end unconverged.
+                driver.converged = false;
+                driver.stages.clear();
+            }
+            if driver.stages.is_empty() {
+                driver.done = true;
+                control.paused = true;
+            }
+        },
+    );
+}
+
+/// Stage `WriteBack`: the model frame into the entity's [`Transform`] (the mesh's vertices are
+/// the model-frame points p_i, rewritten by the render systems).
+pub fn write_transforms(mut models: Query<(&RigidState, &mut Transform), Changed<RigidState>>) {
+    for (rigid, mut transform) in &mut models {
+        transform.translation = rigid.translation.as_vec3();
+        transform.rotation = rigid.rotation.as_quat();
+    }
+}
+
+/// Debug builds: after every step, checks that each model's state is finite, naming the entity
+/// and component that went bad (a step never writes one; this catches a broken invariant).
+#[cfg(debug_assertions)]
+pub fn assert_finite(models: Query<(Entity, &RigidState, &GlobalShape, &LocalDofs, &SimControl)>) {
+    for (entity, rigid, shape, local, control) in &models {
+        if !control.frozen
+            && let Some(what) = first_non_finite(rigid, shape, local)
+        {
+            panic!("deformable superquadric {entity}: {what} became non-finite during a step");
+        }
+    }
+}

@@ -1,0 +1,164 @@
+//! Each model drawn as a dynamic [`Mesh3d`]: the k² + 2 model-frame points p_i = s_i + d_i as
+//! vertices (fixed count), the tessellation's quads and polar fans as triangles, and smooth normals
+//! from the mesh (analytic normals are infinite on the edges of square superquadrics, ε < 1). The
+//! entity's `Transform` carries c and R. Positions and normals are rewritten in place whenever the
+//! shape or the local DOFs change. Nothing here runs without `Assets<Mesh>` (headless apps).
+
+use crate::model::dynamics::node_positions;
+use crate::plugin::{FemMesh, GlobalShape, LocalDofs};
+use bevy::asset::RenderAssetUsages;
+use bevy::math::{DQuat, DVec3};
+use bevy::mesh::{Indices, PrimitiveTopology, VertexAttributeValues};
+use bevy::prelude::*;
+
+/// The dynamic mesh the render systems keep in step with a model.
+#[derive(Component, Clone, Debug)]
+pub struct ModelMesh(pub Handle<Mesh>);
+
+/// The colour a model is drawn in (otherwise one from a palette is chosen at spawn).
+#[derive(Component, Reflect, Clone, Copy, Debug, PartialEq)]
+#[reflect(Component, Debug, PartialEq)]
+pub struct ModelColor(pub Color);
+
+/// Readable, distinct part colours.
+pub const PALETTE: [Color; 8] = [
+    Color::srgb(0.90, 0.45, 0.20),
+    Color::srgb(0.25, 0.55, 0.90),
+    Color::srgb(0.35, 0.75, 0.35),
+    Color::srgb(0.85, 0.30, 0.55),
+    Color::srgb(0.95, 0.80, 0.25),
+    Color::srgb(0.55, 0.40, 0.85),
+    Color::srgb(0.30, 0.80, 0.80),
+    Color::srgb(0.70, 0.70, 0.70),
+];
+
+pub(crate) fn build(app: &mut App) {
+    app.register_type::<ModelColor>().add_systems(
+        PostUpdate,
+        (attach_meshes, write_meshes)
+            .chain()
+            .run_if(resource_exists::<Assets<Mesh>>),
+    );
+}
+
+/// Model-frame vertex positions and smooth (area-weighted) normals of a model.
+pub fn surface_vertices(
+    fem: &FemMesh,
+    shape: &GlobalShape,
+    local: &LocalDofs,
+    points: &mut Vec<DVec3>,
+) -> Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)> {
+    let tess = fem.get()?;
+    node_positions(
+        tess,
+        DVec3::ZERO,
+        DQuat::IDENTITY,
+        &(*shape).into(),
+        &local.displacement,
+        points,
+    );
+    let mut normals = vec![DVec3::ZERO; points.len()];
+    for &[a, b, c] in tess.triangles() {
+        let (pa, pb, pc) = (points[a as usize], points[b as usize], points[c as usize]);
+        let n = (pb - pa).cross(pc - pa);
+        for i in [a, b, c] {
+            normals[i as usize] += n;
+        }
+    }
+    let pos = points.iter().map(|p| p.as_vec3().to_array()).collect();
+    let nor = normals
+        .iter()
+        .map(|n| n.normalize_or(DVec3::Z).as_vec3().to_array())
+        .collect();
+    Some((pos, nor))
+}
+
+fn build_mesh(positions: Vec<[f32; 3]>, normals: Vec<[f32; 3]>, fem: &FemMesh) -> Mesh {
+    let indices = fem
+        .get()
+        .map(|t| t.triangles().iter().flatten().copied().collect())
+        .unwrap_or_default();
+    Mesh::new(
+        PrimitiveTopology::TriangleList,
+        RenderAssetUsages::default(),
+    )
+    .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, positions)
+    .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, normals)
+    .with_inserted_indices(Indices::U32(indices))
+}
+
+/// Gives every model that has none a [`Mesh3d`] and, when materials exist, a coloured
+/// [`StandardMaterial`].
+pub fn attach_meshes(
+    mut commands: Commands,
+    mut meshes: ResMut<Assets<Mesh>>,
+    materials: Option<ResMut<Assets<StandardMaterial>>>,
+    models: Query<
+        (
+            Entity,
+            &FemMesh,
+            &GlobalShape,
+            &LocalDofs,
+            Option<&ModelColor>,
+        ),
+        Without<ModelMesh>,
+    >,
+    mut next_colour: Local<usize>,
+    mut points: Local<Vec<DVec3>>,
+) {
+    let mut materials = materials;
+    for (entity, fem, shape, local, colour) in &models {
+        let Some((pos, nor)) = surface_vertices(fem, shape, local, &mut points) else {
+            continue;
+        };
+        let handle = meshes.add(build_mesh(pos, nor, fem));
+        let mut e = commands.entity(entity);
+        e.insert((ModelMesh(handle.clone()), Mesh3d(handle)));
+        if let Some(materials) = materials.as_mut() {
+            let colour = colour.map(|c| c.0).unwrap_or_else(|| {
+                *next_colour += 1;
+                PALETTE[(*next_colour - 1) % PALETTE.len()]
+            });
+            e.insert(MeshMaterial3d(materials.add(StandardMaterial {
+                base_color: colour,
+                perceptual_roughness: 0.6,
+                ..default()
+            })));
+        }
+    }
+}
+
+/// Rewrites positions and normals in place (same vertex count), or the whole mesh when the
+/// tessellation changed.
+pub fn write_meshes(
+    mut meshes: ResMut<Assets<Mesh>>,
+    models: Query<
+        (&FemMesh, &GlobalShape, &LocalDofs, &ModelMesh),
+        Or<(Changed<LocalDofs>, Changed<GlobalShape>, Changed<FemMesh>)>,
+    >,
+    mut points: Local<Vec<DVec3>>,
+) {
+    for (fem, shape, local, handle) in &models {
+        let Some((pos, nor)) = surface_vertices(fem, shape, local, &mut points) else {
+            continue;
+        };
+        let Some(mut mesh) = meshes.get_mut(&handle.0) else {
+            continue;
+        };
+        let same_count = matches!(mesh.attribute(Mesh::ATTRIBUTE_POSITION), Some(VertexAttributeValues::Float32x3(v)) if v.len() == pos.len());
+        if !same_count {
+            *mesh = build_mesh(pos, nor, fem);
+            continue;
+        }
+        if let Some(VertexAttributeValues::Float32x3(v)) =
+            mesh.attribute_mut(Mesh::ATTRIBUTE_POSITION)
+        {
+            v.copy_from_slice(&pos);
+        }
+        if let Some(VertexAttributeValues::Float32x3(v)) =
+            mesh.attribute_mut(Mesh::ATTRIBUTE_NORMAL)
+        {
+            v.copy_from_slice(&nor);
+        }
+    }
+}

@@ -1,0 +1,453 @@
+//! DeformableSqPlugin in headless apps (`MinimalPlugins`, time driven by
+//! `TimeUpdateStrategy::ManualDuration`).
+
+use bevy::math::{DQuat, DVec3};
+use bevy::prelude::*;
+use bevy::time::TimeUpdateStrategy;
+use bevy_deformable_sq::model::dynamics::{ModelState, NodalForces, Workspace, step};
+use bevy_deformable_sq::model::fem::Tessellation;
+use bevy_deformable_sq::model::fit::residuals;
+use bevy_deformable_sq::model::superquadric::SuperquadricParams;
+use bevy_deformable_sq::prelude::*;
+use bevy_deformable_sq::synthetic::superquadric_cloud;
+use std::hash::{Hash, Hasher};
+use std::time::Duration;
+
+/// A headless app whose every `update` advances time by one fixed step (1/64 s).
+fn app() -> App {
+    let mut app = App::new();
+    app.add_plugins(MinimalPlugins)
+        .add_plugins(DeformableSqPlugin::default());
+    app.insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
+        1.0 / 64.0,
+    )));
+    app
+}
+
+/// Updates until every model has taken at least `steps` steps (bounded).
+fn run_steps(app: &mut App, steps: u64) {
+    for _ in 0..steps * 4 + 10 {
+        app.update();
+        let mut q = app.world_mut().query::<&SimControl>();
+        if q.iter(app.world())
+            .all(|c| c.steps >= steps || c.frozen || c.paused)
+        {
+            return;
+        }
+    }
+    panic!("models did not take {steps} steps");
+}
+
+fn cloud(seed: u64, centre: DVec3) -> Vec<DVec3> {
+    let shape = SuperquadricParams {
+        a: 1.2,
+        a1: 0.8,
+        a2: 0.6,
+        a3: 1.0,
+        e1: 0.7,
+        e2: 1.2,
+    };
+    superquadric_cloud(
+        &shape,
+        centre,
+        DQuat::from_rotation_z(0.3),
+        400,
+        0.005,
+        seed,
+    )
+}
+
+fn start_shape() -> GlobalShape {
+    GlobalShape {
+        a: 1.0,
+        a1: 1.0,
+        a2: 1.0,
+        a3: 1.0,
+        e1: 1.0,
+        e2: 1.0,
+    }
+}
+
+fn spawn_model(app: &mut App, points: Vec<DVec3>, centre: DVec3, k: usize) -> Entity {
+    app.world_mut()
+        .spawn((
+            start_shape(),
+            RigidState {
+                translation: centre,
+                rotation: DQuat::IDENTITY,
+            },
+            FemMesh::new(k),
+            RangeData::new(points),
+        ))
+        .id()
+}
+
+fn state_of(app: &App, e: Entity) -> (RigidState, GlobalShape, LocalDofs, SimControl) {
+    let w = app.world();
+    (
+        *w.get::<RigidState>(e).unwrap(),
+        *w.get::<GlobalShape>(e).unwrap(),
+        w.get::<LocalDofs>(e).unwrap().clone(),
+        w.get::<SimControl>(e).unwrap().clone(),
+    )
+}
+
+fn state_hash(app: &App, e: Entity) -> u64 {
+    let (r, s, l, _) = state_of(app, e);
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    let mut put = |x: f64| x.to_bits().hash(&mut h);
+    r.translation
+        .to_array()
+        .into_iter()
+        .chain(r.rotation.to_array())
+        .for_each(&mut put);
+    [s.a, s.a1, s.a2, s.a3, s.e1, s.e2]
+        .into_iter()
+        .for_each(&mut put);
+    l.displacement
+        .iter()
+        .flat_map(|d| d.to_array())
+        .for_each(&mut put);
+    h.finish()
+}
+
+#[test]
+fn plugin_fit_equals_the_pure_core_step_for_step() {
+    let points = cloud(1, DVec3::new(0.5, 0.0, 0.2));
+    let mut app = app();
+    let e = spawn_model(&mut app, points.clone(), DVec3::new(0.4, 0.1, 0.0), 15);
+    run_steps(&mut app, 600);
+    let (rigid, shape, local, control) = state_of(&app, e);
+    let steps = control.steps;
+
+    // The same loop through the pure core.
+    let tess = Tessellation::new(15);
+    let mut state = ModelState::new(
+        &tess,
+        DVec3::new(0.4, 0.1, 0.0),
+        DQuat::IDENTITY,
+        start_shape().into(),
+    );
+    let mut range = RangeData::new(points.clone()).forces;
+    let settings = ModelSettings::default();
+    let (mut ws, mut forces, mut x) = (
+        Workspace::default(),
+        NodalForces::new(tess.node_count()),
+        Vec::new(),
+    );
+    for s in 0..steps {
+        state.node_positions(&tess, &mut x);
+        if s % settings.reassign_every as u64 == 0 {
+            range.reassign(&tess, &x);
+        }
+        range.migrate(&tess, &x);
+        forces.clear(tess.node_count());
+        range.accumulate(&tess, &x, &mut forces);
+        step(&tess, &mut state, &forces, &settings.dynamics(), &mut ws).unwrap();
+    }
+    assert_eq!(state.translation, rigid.translation);
+    assert_eq!(state.rotation, rigid.rotation);
+    assert_eq!(SuperquadricParams::from(shape), state.shape);
+    assert_eq!(state.displacement, local.displacement);
+
+    state.node_positions(&tess, &mut x);
+    let res = residuals(&tess, &x, &points);
+    eprintln!("plugin fit after {steps} steps: {res:?}");
+    assert!(
+        res.mean < 0.01,
+        "the plugin's model did not fit its data: {res:?}"
+    );
+}
+
+#[test]
+fn reassignment_happens_exactly_every_n_steps() {
+    let mut app = app();
+    let e = spawn_model(&mut app, cloud(2, DVec3::ZERO), DVec3::ZERO, 9);
+    app.world_mut()
+        .get_mut::<ModelSettings>(e)
+        .unwrap()
+        .reassign_every = 7;
+    for _ in 0..200 {
+        app.update();
+        let steps = app.world().get::<SimControl>(e).unwrap().steps;
+        let done = app.world().get::<RangeData>(e).unwrap().reassignments;
+        // Before steps 0, 7, 14, …: ⌈steps / 7⌉ reattachments after `steps` steps.
+        assert_eq!(done, steps.div_ceil(7), "after {steps} steps");
+    }
+    assert!(app.world().get::<SimControl>(e).unwrap().steps >= 100);
+}
+
+#[test]
+fn two_runs_are_bit_identical() {
+    let run = || {
+        let mut app = app();
+        let es: Vec<Entity> = (0..4)
+            .map(|i| {
+                spawn_model(
+                    &mut app,
+                    cloud(10 + i, DVec3::X * i as f64),
+                    DVec3::X * i as f64,
+                    11,
+                )
+            })
+            .collect();
+        run_steps(&mut app, 250);
+        es.iter()
+            .map(|&e| {
+                (
+                    state_hash(&app, e),
+                    app.world().get::<SimControl>(e).unwrap().steps,
+                )
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(run(), run());
+}
+
+#[test]
+fn despawning_a_model_mid_run_leaves_the_others_running() {
+    let mut app = app();
+    let a = spawn_model(&mut app, cloud(3, DVec3::ZERO), DVec3::ZERO, 9);
+    let b = spawn_model(&mut app, cloud(4, DVec3::Y * 3.0), DVec3::Y * 3.0, 9);
+    run_steps(&mut app, 20);
+    app.world_mut().despawn(a);
+    let before = app.world().get::<SimControl>(b).unwrap().steps;
+    for _ in 0..30 {
+        app.update();
+    }
+    assert!(app.world().get_entity(a).is_err());
+    assert!(app.world().get::<SimControl>(b).unwrap().steps > before + 20);
+}
+
+#[test]
+fn a_model_with_no_data_stays_at_rest() {
+    let mut app = app();
+    let e = app
+        .world_mut()
+        .spawn((
+            GlobalShape {
+                a: 1.3,
+                a1: 0.5,
+                a2: 0.8,
+                a3: 1.0,
+                e1: 0.6,
+                e2: 1.4,
+            },
+            RigidState::default(),
+        ))
+        .id();
+    run_steps(&mut app, 1);
+    let first = state_hash(&app, e);
+    run_steps(&mut app, 100);
+    assert_eq!(state_hash(&app, e), first);
+    let (_, shape, local, control) = state_of(&app, e);
+    assert_eq!(shape.a, 1.3);
+    assert_eq!(
+        local.displacement.len(),
+        963,
+        "a default model has the paper's 963 nodes"
+    );
+    assert!(local.displacement.iter().all(|d| *d == DVec3::ZERO));
+    assert!(control.steps >= 100);
+}
+
+#[test]
+fn twenty_models_fit_at_once() {
+    let mut app = app();
+    let es: Vec<(Entity, Vec<DVec3>)> = (0..20)
+        .map(|i| {
+            let centre = DVec3::new((i % 5) as f64 * 4.0, (i / 5) as f64 * 4.0, 0.0);
+            let pts = cloud(100 + i, centre);
+            (
+                spawn_model(&mut app, pts.clone(), centre + DVec3::splat(0.2), 9),
+                pts,
+            )
+        })
+        .collect();
+    run_steps(&mut app, 300);
+    for (e, pts) in es {
+        let (rigid, shape, local, control) = state_of(&app, e);
+        assert!(!control.frozen);
+        let tess = Tessellation::new(9);
+        let state = ModelState {
+            translation: rigid.translation,
+            rotation: rigid.rotation,
+            shape: shape.into(),
+            displacement: local.displacement,
+        };
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        let res = residuals(&tess, &x, &pts);
+        assert!(res.mean < 0.02, "model {e}: {res:?}");
+    }
+}
+
+#[test]
+fn global_shape_changed_from_outside_is_picked_up() {
+    let mut app = app();
+    let pts = superquadric_cloud(
+        &SuperquadricParams::default(),
+        DVec3::ZERO,
+        DQuat::IDENTITY,
+        500,
+        0.0,
+        9,
+    );
+    let e = spawn_model(&mut app, pts, DVec3::ZERO, 11);
+    run_steps(&mut app, 400);
+    let a_fit = app.world().get::<GlobalShape>(e).unwrap().a;
+    assert!((a_fit - 1.0).abs() < 0.05, "fitted a = {a_fit}");
+    // An inspector sets a = 1.5; the next step starts from there and moves back towards the data.
+    app.world_mut().get_mut::<GlobalShape>(e).unwrap().a = 1.5;
+    let steps = app.world().get::<SimControl>(e).unwrap().steps;
+    run_steps(&mut app, steps + 1);
+    let a = app.world().get::<GlobalShape>(e).unwrap().a;
+    assert!(a < 1.5 && a > 1.2, "a = {a} after one step from 1.5");
+}
+
+#[test]
+fn pause_single_step_and_reset() {
+    let mut app = app();
+    let e = spawn_model(
+        &mut app,
+        cloud(5, DVec3::ZERO),
+        DVec3::new(0.3, 0.0, 0.0),
+        9,
+    );
+    run_steps(&mut app, 1);
+    let spawn = state_of(&app, e);
+    run_steps(&mut app, 30);
+    app.world_mut().get_mut::<SimControl>(e).unwrap().paused = true;
+    app.update();
+    let paused_at = state_hash(&app, e);
+    let steps = app.world().get::<SimControl>(e).unwrap().steps;
+    for _ in 0..10 {
+        app.update();
+    }
+    assert_eq!(state_hash(&app, e), paused_at, "a paused model moved");
+    app.world_mut()
+        .get_mut::<SimControl>(e)
+        .unwrap()
+        .step_requests = 1;
+    for _ in 0..10 {
+        app.update();
+    }
+    assert_eq!(
+        app.world().get::<SimControl>(e).unwrap().steps,
+        steps + 1,
+        "single step"
+    );
+    {
+        let mut c = app.world_mut().get_mut::<SimControl>(e).unwrap();
+        c.reset_requested = true;
+        c.paused = false;
+    }
+    app.update();
+    let (r, s, _, c) = state_of(&app, e);
+    // After the reset the model stepped at most a couple of times from its spawn state.
+    assert!(c.steps <= 3 && !c.reset_requested, "{c:?}");
+    assert!((r.translation - spawn.0.translation).length() < 0.2);
+    assert!((s.a - spawn.1.a).abs() < 0.2);
+}
+
+#[test]
+fn a_state_made_non_finite_from_outside_freezes_the_model() {
+    let mut app = app();
+    let e = spawn_model(&mut app, cloud(6, DVec3::ZERO), DVec3::ZERO, 9);
+    run_steps(&mut app, 5);
+    app.world_mut()
+        .get_mut::<RigidState>(e)
+        .unwrap()
+        .translation
+        .x = f64::NAN;
+    for _ in 0..5 {
+        app.update();
+    }
+    let c = app.world().get::<SimControl>(e).unwrap();
+    assert!(c.frozen);
+    assert!(
+        c.error.as_deref().unwrap_or("").contains("RigidState"),
+        "{:?}",
+        c.error
+    );
+    // Reset brings it back.
+    app.world_mut()
+        .get_mut::<SimControl>(e)
+        .unwrap()
+        .reset_requested = true;
+    run_steps(&mut app, 3);
+    let (r, _, _, c) = state_of(&app, e);
+    assert!(!c.frozen && r.translation.is_finite());
+}
+
+#[test]
+fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
+    use bevy_deformable_sq::model::fit::{FitOptions, fit};
+    use bevy_deformable_sq::plugin::headless::fit_headless;
+    let shape = SuperquadricParams {
+        a: 1.4,
+        a1: 0.5,
+        a2: 0.8,
+        a3: 1.0,
+        e1: 0.5,
+        e2: 1.3,
+    };
+    let points = superquadric_cloud(
+        &shape,
+        DVec3::new(2.0, -1.0, 0.5),
+        DQuat::from_rotation_x(0.7),
+        300,
+        0.01,
+        77,
+    );
+    for global_only in [true, false] {
+        let opts = FitOptions {
+            k: 11,
+            global_only,
+            ..Default::default()
+        };
+        let core = fit(&points, &opts, |_| {}).expect("core fit");
+        let app = fit_headless(&points, &opts).expect("headless fit");
+        assert_eq!(app.steps, core.steps, "global_only {global_only}");
+        assert_eq!(app.global_steps, core.global_steps);
+        assert_eq!(app.converged, core.converged);
+        assert_eq!(
+            app.state, core.state,
+            "global_only {global_only}: states differ"
+        );
+        assert_eq!(app.residuals, core.residuals);
+        eprintln!(
+            "global_only {global_only}: {} steps, {:?}",
+            app.steps, app.residuals
+        );
+    }
+}
+
+#[cfg(feature = "serialize")]
+#[test]
+fn components_round_trip_through_serde() {
+    let shape = GlobalShape {
+        a: 1.25,
+        a1: 0.3,
+        a2: 1.0,
+        a3: 0.7,
+        e1: 0.45,
+        e2: 1.7,
+    };
+    let rigid = RigidState {
+        translation: DVec3::new(1.0, -2.5, 1e-9),
+        rotation: DQuat::from_rotation_y(0.3),
+    };
+    let local = LocalDofs {
+        displacement: vec![DVec3::new(0.1, 0.2, -0.3); 11],
+    };
+    let settings = ModelSettings {
+        w0: 1e-6,
+        reassign_every: 50,
+        ..Default::default()
+    };
+    let json = serde_json::to_string(&(shape, rigid, &local, settings)).unwrap();
+    let back: (GlobalShape, RigidState, LocalDofs, ModelSettings) =
+        serde_json::from_str(&json).unwrap();
+    assert_eq!(back, (shape, rigid, local, settings));
+}
