@@ -534,7 +534,7 @@ pub fn step(
         ws.local_force.clear();
         ws.local_force.extend(forces.force.iter().map(|f| rt * *f));
         let (w0, w1, gamma) = (params.w0, params.w1, params.gamma_local);
-        let rows = ws.row_bounds(tess, w0, w1).to_vec();
+        let rows = ws.row_bounds(tess, w0, w1);
         let lambda_max = (0..n)
             .map(|i| (rows[i] + forces.stiffness[i]) / (gamma * tess.node_area[i]))
             .fold(0.0_f64, f64::max);
