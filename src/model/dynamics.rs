@@ -41,7 +41,9 @@
 use super::fem::{ElementPoint, Tessellation};
 use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
 use super::linalg::cholesky_solve;
-use super::superquadric::{NUM_SHAPE, SuperquadricParams, jacobian, shape};
+use super::superquadric::{
+    NUM_SHAPE, SignedPowers, SuperquadricParams, jacobian_from_powers, shape, shape_from_powers,
+};
 use bevy::math::{DMat3, DQuat, DVec3};
 
 /// Number of global degrees of freedom: q_c (3) + q_θ (4) + q_s (6).
@@ -289,6 +291,7 @@ impl std::error::Error for StepError {}
 #[derive(Clone, Debug, Default)]
 pub struct Workspace {
     points: Vec<DVec3>,
+    powers: Vec<SignedPowers>,
     kd: Vec<DVec3>,
     local_force: Vec<DVec3>,
     new_d: Vec<DVec3>,
@@ -297,6 +300,20 @@ pub struct Workspace {
 }
 
 impl Workspace {
+    /// Model-frame points p_i = s_i + d_i and the signed powers behind s_i, once per step.
+    fn prepare_points(&mut self, tess: &Tessellation, state: &ModelState) {
+        self.powers.clear();
+        self.powers
+            .extend(tess.trig.iter().map(|t| SignedPowers::new(&state.shape, t)));
+        self.points.clear();
+        self.points.extend(
+            self.powers
+                .iter()
+                .zip(&state.displacement)
+                .map(|(p, d)| shape_from_powers(&state.shape, p) + *d),
+        );
+    }
+
     fn row_bounds(&mut self, tess: &Tessellation, w0: f64, w1: f64) -> &[f64] {
         let key = (w0, w1, tess.node_count());
         if self.row_bounds_key != Some(key) {
@@ -314,8 +331,8 @@ pub fn generalized_global_forces(
     forces: &NodalForces,
 ) -> [f64; NUM_GLOBAL] {
     let mut ws = Workspace::default();
-    state.model_points(tess, &mut ws.points);
-    global_system(tess, state, &ws.points, forces).1
+    ws.prepare_points(tess, state);
+    global_system(tess, state, &ws, forces).1
 }
 
 /// f_d,i = Sᵀ Rᵀ f: for nodal basis functions the local generalized force is RᵀF_i (eq. 33).
@@ -329,9 +346,10 @@ pub fn generalized_local_forces(state: &ModelState, forces: &NodalForces) -> Vec
 fn global_system(
     tess: &Tessellation,
     state: &ModelState,
-    points: &[DVec3],
+    ws: &Workspace,
     forces: &NodalForces,
 ) -> ([[f64; NUM_GLOBAL]; NUM_GLOBAL], [f64; NUM_GLOBAL], f64) {
+    let (points, powers) = (&ws.points, &ws.powers);
     let r = rotation_matrix(state.rotation);
     let rt = r.transpose();
     let g = g_matrix(state.rotation);
@@ -351,7 +369,7 @@ fn global_system(
             continue;
         }
         let p = points[i];
-        let jac = jacobian(&state.shape, &tess.trig[i]);
+        let jac = jacobian_from_powers(&state.shape, &tess.trig[i], &powers[i]);
         let fm = rt * f;
         f_c += f;
         torque += p.cross(fm);
@@ -426,11 +444,11 @@ fn outer(a: DVec3, b: DVec3) -> DMat3 {
 fn global_increment(
     tess: &Tessellation,
     state: &ModelState,
-    points: &[DVec3],
+    ws: &Workspace,
     forces: &NodalForces,
     params: &DynamicsParams,
 ) -> Result<[f64; NUM_GLOBAL], StepError> {
-    let (mut c, mut f, kappa_sum) = global_system(tess, state, points, forces);
+    let (mut c, mut f, kappa_sum) = global_system(tess, state, ws, forces);
     let ell = state.shape.a.max(1e-12);
     let scale = [
         1.0,
@@ -519,11 +537,8 @@ pub fn step(
         clamped: false,
         trust_limited: false,
     };
-    let mut points = std::mem::take(&mut ws.points);
-    state.model_points(tess, &mut points);
-    let delta = global_increment(tess, state, &points, forces, params);
-    ws.points = points;
-    let mut delta = delta?;
+    ws.prepare_points(tess, state);
+    let mut delta = global_increment(tess, state, ws, forces, params)?;
     report.trust_limited = limit_global(&mut delta, state);
 
     // Local block, explicit Euler with the checked stability bound.
@@ -607,6 +622,7 @@ pub fn step(
 mod tests {
     use super::*;
     use crate::model::frame::quat_from_paper;
+    use crate::model::superquadric::jacobian;
 
     fn test_state(tess: &Tessellation) -> ModelState {
         let mut s = ModelState::new(
@@ -730,9 +746,10 @@ mod tests {
         for i in 0..tess.node_count() {
             forces.stiffness[i] = 0.1 + (i % 3) as f64;
         }
-        let mut pts = Vec::new();
-        state.model_points(&tess, &mut pts);
-        let (m, _, _) = global_system(&tess, &state, &pts, &forces);
+        let mut ws = Workspace::default();
+        ws.prepare_points(&tess, &state);
+        let (m, _, _) = global_system(&tess, &state, &ws, &forces);
+        let pts = ws.points.clone();
         let r = rotation_matrix(state.rotation);
         let mut explicit = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
         for i in 0..tess.node_count() {

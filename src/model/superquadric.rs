@@ -161,11 +161,39 @@ impl Trig {
 
 /// The reference shape s(u; q_s) of eq. (4) at a point with precomputed [`Trig`] terms.
 pub fn shape(q: &SuperquadricParams, t: &Trig) -> DVec3 {
-    let cu = spow(t.cu, q.e1);
-    let su = spow(t.su, q.e1);
-    let cv = spow(t.cv, q.e2);
-    let sv = spow(t.sv, q.e2);
-    q.a * DVec3::new(q.a1 * cu * cv, q.a2 * cu * sv, q.a3 * su)
+    shape_from_powers(q, &SignedPowers::new(q, t))
+}
+
+/// The four signed powers C_u^ε1, S_u^ε1, C_v^ε2, S_v^ε2 at one point: the expensive part of
+/// both s and J, computed once per node per step and shared by [`shape_from_powers`] and
+/// [`jacobian_from_powers`].
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SignedPowers {
+    /// C_u^ε1
+    pub cu: f64,
+    /// S_u^ε1
+    pub su: f64,
+    /// C_v^ε2
+    pub cv: f64,
+    /// S_v^ε2
+    pub sv: f64,
+}
+
+impl SignedPowers {
+    /// The signed powers of `q`'s exponents at a point with terms `t`.
+    pub fn new(q: &SuperquadricParams, t: &Trig) -> Self {
+        Self {
+            cu: spow(t.cu, q.e1),
+            su: spow(t.su, q.e1),
+            cv: spow(t.cv, q.e2),
+            sv: spow(t.sv, q.e2),
+        }
+    }
+}
+
+/// s (eq. 4) from precomputed signed powers.
+pub fn shape_from_powers(q: &SuperquadricParams, p: &SignedPowers) -> DVec3 {
+    q.a * DVec3::new(q.a1 * p.cu * p.cv, q.a2 * p.cu * p.sv, q.a3 * p.su)
 }
 
 /// The reference shape s(u, v; q_s) of eq. (4) at material coordinates (u, v).
@@ -176,12 +204,17 @@ pub fn shape_at(q: &SuperquadricParams, u: f64, v: f64) -> DVec3 {
 /// The Jacobian J = ∂s/∂q_s (eq. 9), as its six columns ∂s/∂(a, a1, a2, a3, ε1, ε2).
 /// Derived from eq. (4); the printed eq. (10) is wrong in the ε columns (see the module docs).
 pub fn jacobian(q: &SuperquadricParams, t: &Trig) -> [DVec3; NUM_SHAPE] {
-    let cu = spow(t.cu, q.e1);
-    let su = spow(t.su, q.e1);
-    let cv = spow(t.cv, q.e2);
-    let sv = spow(t.sv, q.e2);
+    jacobian_from_powers(q, t, &SignedPowers::new(q, t))
+}
+
+/// J (eq. 9, derived anew) from precomputed signed powers.
+pub fn jacobian_from_powers(
+    q: &SuperquadricParams,
+    t: &Trig,
+    p: &SignedPowers,
+) -> [DVec3; NUM_SHAPE] {
     // Unit-scale components: s = a (a1 X, a2 Y, a3 Z).
-    let (x, y, z) = (cu * cv, cu * sv, su);
+    let (x, y, z) = (p.cu * p.cv, p.cu * p.sv, p.su);
     let a = q.a;
     [
         DVec3::new(q.a1 * x, q.a2 * y, q.a3 * z),
