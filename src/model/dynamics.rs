@@ -88,17 +88,6 @@ impl ModelState {
             && self.displacement.iter().all(|d| d.is_finite())
     }
 
-    /// Model-frame positions p_i = s_i + d_i of every node (eq. 3).
-    pub fn model_points(&self, tess: &Tessellation, out: &mut Vec<DVec3>) {
-        out.clear();
-        out.extend(
-            tess.trig
-                .iter()
-                .zip(&self.displacement)
-                .map(|(t, d)| shape(&self.shape, t) + *d),
-        );
-    }
-
     /// World positions x_i = c + R p_i of every node (eq. 2).
     pub fn node_positions(&self, tess: &Tessellation, out: &mut Vec<DVec3>) {
         node_positions(
@@ -109,20 +98,6 @@ impl ModelState {
             &self.displacement,
             out,
         );
-    }
-
-    /// World positions of the global shape alone, x_i = c + R s_i (the superquadric without d).
-    pub fn reference_positions(&self, tess: &Tessellation) -> Vec<DVec3> {
-        let r = rotation_matrix(self.rotation);
-        tess.trig
-            .iter()
-            .map(|t| self.translation + r * shape(&self.shape, t))
-            .collect()
-    }
-
-    /// The world position at a point inside an element: Σ N_i x_i (eq. 22).
-    pub fn position_at(&self, node_x: &[DVec3], at: &ElementPoint) -> DVec3 {
-        at.interpolate(|n| node_x[n])
     }
 }
 

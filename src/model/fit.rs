@@ -358,6 +358,17 @@ impl StageClock {
     }
 }
 
+/// The largest distance any node moved between two sets of node positions: the rest measure of
+/// [`StageClock::after_step`].
+pub fn max_motion(before: &[DVec3], after: &[DVec3]) -> f64 {
+    before
+        .iter()
+        .zip(after)
+        .map(|(a, b)| a.distance_squared(*b))
+        .fold(0.0, f64::max)
+        .sqrt()
+}
+
 /// The stages a fit runs before choosing among initial hypotheses: placing (when `coverage` > 0)
 /// and the global stage (unless the local DOFs move from the start).
 pub fn global_stages(opts: &FitOptions) -> Vec<Stage> {
@@ -477,13 +488,7 @@ impl<'a> Relaxation<'a> {
                 self.substepped += 1;
             }
             self.state.node_positions(tess, &mut self.x_new);
-            let motion = self
-                .x
-                .iter()
-                .zip(&self.x_new)
-                .map(|(a, b)| a.distance_squared(*b))
-                .fold(0.0, f64::max)
-                .sqrt();
+            let motion = max_motion(&self.x, &self.x_new);
             std::mem::swap(&mut self.x, &mut self.x_new);
             if self.steps.is_multiple_of(100) {
                 let energy = self.range.energy(tess, &self.x)

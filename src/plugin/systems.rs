@@ -4,7 +4,7 @@
 
 use super::components::*;
 use crate::model::dynamics::step;
-use crate::model::fit::{Stage, StageClock};
+use crate::model::fit::{Stage, StageClock, max_motion};
 use crate::model::superquadric::SuperquadricParams;
 use bevy::math::DVec3;
 use bevy::prelude::*;
@@ -274,13 +274,7 @@ pub fn drive_fits(
             }
             let scratch = &mut *scratch;
             world_positions(tess, rigid, shape, local, &mut scratch.x_new);
-            let motion = scratch
-                .node_x
-                .iter()
-                .zip(&scratch.x_new)
-                .map(|(a, b)| a.distance_squared(*b))
-                .fold(0.0, f64::max)
-                .sqrt();
+            let motion = max_motion(&scratch.node_x, &scratch.x_new);
             std::mem::swap(&mut scratch.node_x, &mut scratch.x_new);
             let mut reassigned = false;
             let points = range.forces.points.len();
