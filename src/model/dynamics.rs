@@ -181,6 +181,10 @@ pub struct FreeDofs {
     pub shape: [bool; NUM_SHAPE],
     /// q_d moves (false: a pure superquadric, "global only").
     pub local: bool,
+    /// Image-plane motion only: the model translates in world x–y and turns about world z; the
+    /// depth c_z and the out-of-plane turns are held (a monocular image does not observe them).
+    #[serde(default)]
+    pub planar: bool,
 }
 
 impl Default for FreeDofs {
@@ -190,6 +194,7 @@ impl Default for FreeDofs {
             rotation: true,
             shape: [true; NUM_SHAPE],
             local: true,
+            planar: false,
         }
     }
 }
@@ -443,14 +448,24 @@ fn global_increment(
     let weight = kappa_sum
         .max(f.iter().map(|x| x.abs()).fold(0.0, f64::max) / ell)
         .max(1e-300);
+    for i in 0..NUM_GLOBAL {
+        c[i][i] += params.marquardt * c[i][i] + params.ridge * weight * scale[i];
+    }
     let free = params.free;
+    // Planar motion: rotate the quaternion block into a basis whose first vector is the turn
+    // about world z, and hold the other three (and c_z) below.
+    let basis = free.planar.then(|| planar_rotation_basis(state.rotation));
+    if let Some(e) = &basis {
+        change_rotation_basis(&mut c, &mut f, e);
+    }
     for i in 0..NUM_GLOBAL {
         let is_free = match i {
-            0..=2 => free.translation,
-            3..=6 => free.rotation,
+            0 | 1 => free.translation,
+            2 => free.translation && !free.planar,
+            3 => free.rotation,
+            4..=6 => free.rotation && !free.planar,
             _ => free.shape[i - 7],
         };
-        c[i][i] += params.marquardt * c[i][i] + params.ridge * weight * scale[i];
         if !is_free {
             for j in 0..NUM_GLOBAL {
                 c[i][j] = 0.0;
@@ -469,8 +484,64 @@ fn global_increment(
     if !f.iter().all(|x| x.is_finite()) {
         return Err(StepError::NonFinite("generalized force f_q"));
     }
-    let x = cholesky_solve(&c, &f).ok_or(StepError::NonFinite("global damping matrix C_g"))?;
+    let mut x = cholesky_solve(&c, &f).ok_or(StepError::NonFinite("global damping matrix C_g"))?;
+    if let Some(e) = &basis {
+        let xi = [x[3], x[4], x[5], x[6]];
+        for j in 0..4 {
+            x[3 + j] = (0..4).map(|k| e[k][j] * xi[k]).sum();
+        }
+    }
     Ok(x.map(|v| v * params.dt))
+}
+
+/// An orthonormal basis of quaternion increments (paper order) whose first vector is the turn
+/// about world z, dq/dφ = ½ (0, ẑ) ⊗ q.
+fn planar_rotation_basis(q: DQuat) -> [[f64; 4]; 4] {
+    let t = DQuat::from_xyzw(0.0, 0.0, 0.5, 0.0) * q;
+    let mut basis: Vec<[f64; 4]> = Vec::with_capacity(4);
+    let candidates = [
+        [t.w, t.x, t.y, t.z],
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    for mut v in candidates {
+        for b in &basis {
+            let d: f64 = (0..4).map(|k| v[k] * b[k]).sum();
+            (0..4).for_each(|k| v[k] -= d * b[k]);
+        }
+        let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        if n > 0.3 && basis.len() < 4 {
+            basis.push(v.map(|x| x / n));
+        }
+    }
+    [basis[0], basis[1], basis[2], basis[3]]
+}
+
+/// C ← Qᵀ C Q and f ← Qᵀ f for Q = diag(I₃, E, I₆), E's columns the rows of `e`.
+fn change_rotation_basis(
+    c: &mut [[f64; NUM_GLOBAL]; NUM_GLOBAL],
+    f: &mut [f64; NUM_GLOBAL],
+    e: &[[f64; 4]; 4],
+) {
+    for row in c.iter_mut() {
+        // C Q, row by row.
+        let r: [f64; 4] = std::array::from_fn(|j| row[3 + j]);
+        for k in 0..4 {
+            row[3 + k] = (0..4).map(|j| e[k][j] * r[j]).sum();
+        }
+    }
+    for col in 0..NUM_GLOBAL {
+        let column: [f64; 4] = std::array::from_fn(|j| c[3 + j][col]);
+        for k in 0..4 {
+            c[3 + k][col] = (0..4).map(|j| e[k][j] * column[j]).sum();
+        }
+    }
+    let fr: [f64; 4] = std::array::from_fn(|j| f[3 + j]);
+    for k in 0..4 {
+        f[3 + k] = (0..4).map(|j| e[k][j] * fr[j]).sum();
+    }
 }
 
 /// Cuts a global increment back to the trust region; returns true when it did.
@@ -805,5 +876,34 @@ mod tests {
         );
         assert!(err.is_err());
         assert_eq!(state, before);
+    }
+
+    #[test]
+    fn planar_motion_holds_depth_and_turns_only_about_z() {
+        let tess = Tessellation::new(8);
+        let mut state = test_state(&tess);
+        let mut forces = test_forces(&tess);
+        for k in forces.stiffness.iter_mut() {
+            *k = 1.0;
+        }
+        let mut params = DynamicsParams::default();
+        params.free.planar = true;
+        let before = state.clone();
+        let mut ws = Workspace::default();
+        for _ in 0..5 {
+            step(&tess, &mut state, &forces, &params, &mut ws).unwrap();
+        }
+        assert_eq!(state.translation.z, before.translation.z);
+        assert!((state.translation - before.translation).truncate().length() > 1e-6);
+        // The relative turn is about world z: it maps ẑ to itself.
+        let turn = state.rotation * before.rotation.inverse();
+        assert!((turn * DVec3::Z - DVec3::Z).length() < 1e-9, "{turn:?}");
+        assert!(turn.to_axis_angle().1.abs() > 1e-6);
+        // Without the constraint the same forces turn the model out of the plane.
+        let mut free = before.clone();
+        params.free.planar = false;
+        step(&tess, &mut free, &forces, &params, &mut ws).unwrap();
+        let turn = free.rotation * before.rotation.inverse();
+        assert!((turn * DVec3::Z - DVec3::Z).length() > 1e-6);
     }
 }

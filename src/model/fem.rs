@@ -223,9 +223,31 @@ pub struct Tessellation {
     pub south_matrices: ElementMatrices<3>,
     /// The render triangulation (see [`Tessellation::triangles`]).
     pub tris: Vec<[u32; 3]>,
+    /// Every edge of the render triangulation with the two triangles that share it:
+    /// `[node a, node b, triangle 1, triangle 2]` (the surface is closed, so each edge has two).
+    pub edges: Vec<[u32; 4]>,
     /// Lumped nodal area A_i = ∫ N_i du (row sums of the mass matrices); Σ A_i is the area the
     /// elements cover in (u, v).
     pub node_area: Vec<f64>,
+}
+
+/// Pairs the triangles of a closed triangulation across their shared edges.
+fn edge_faces(tris: &[[u32; 3]]) -> Vec<[u32; 4]> {
+    let mut open: std::collections::HashMap<(u32, u32), u32> = std::collections::HashMap::new();
+    let mut out = Vec::with_capacity(tris.len() * 3 / 2);
+    for (ti, t) in tris.iter().enumerate() {
+        for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+            let key = (a.min(b), a.max(b));
+            match open.remove(&key) {
+                Some(other) => out.push([a, b, other, ti as u32]),
+                None => {
+                    open.insert(key, ti as u32);
+                }
+            }
+        }
+    }
+    debug_assert!(open.is_empty(), "the triangulation is not closed");
+    out
 }
 
 /// The smallest k accepted: 3 rings × 3 longitudes is the coarsest closed surface.
@@ -277,8 +299,10 @@ impl Tessellation {
             south_matrices: triangle_element(Cap::South, h_u, h_v),
             node_area: Vec::new(),
             tris: Vec::new(),
+            edges: Vec::new(),
         };
         t.tris = t.build_triangles();
+        t.edges = edge_faces(&t.tris);
         let mut area = vec![0.0; t.node_count()];
         t.for_each_element(|nodes, grad_mass| {
             for (a, &n) in nodes.iter().enumerate() {
@@ -450,6 +474,21 @@ impl Tessellation {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_edge_has_two_triangles_that_contain_it() {
+        let t = Tessellation::new(7);
+        let tris = t.triangles();
+        assert_eq!(t.edges.len() * 2, tris.len() * 3);
+        let mut seen = std::collections::HashSet::new();
+        for &[a, b, t1, t2] in &t.edges {
+            assert!(seen.insert((a.min(b), a.max(b))), "edge listed twice");
+            assert_ne!(t1, t2);
+            for tri in [tris[t1 as usize], tris[t2 as usize]] {
+                assert!(tri.contains(&a) && tri.contains(&b));
+            }
+        }
+    }
 
     #[test]
     fn node_counts_match_the_paper() {

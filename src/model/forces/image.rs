@@ -1,0 +1,819 @@
+//! Image forces (section V, eqs. 20, 21, 23): a 3D model pulled towards the intensity edges of a
+//! 2D monocular image.
+//!
+//! **Potential.** P = ‖∇(G_σ ∗ I)‖ (eq. 20): the luminance I (in [0, 1]) is smoothed by a
+//! separable Gaussian of width σ pixels, differentiated by central differences, and P is the
+//! magnitude of that gradient at every pixel. ∇P is taken at every pixel by central differences
+//! of P, and between pixels by the bilinear interpolant of the four surrounding pixels — the
+//! quadrilateral element of Fig. 10 with a = b = 1, as section V builds it. All of it is computed
+//! once per image and σ ([`ImagePotential::new`]), never per step.
+//!
+//! **Placement.** The image lies in the world's x–y plane (z = 0), rescaled so its longer side
+//! has length `extent` (1: the paper's unit square) and centred on `center` ([`ImageFrame`]);
+//! x runs right along the columns, y up against the rows. Derivatives are per unit of that
+//! plane, so P is in intensity per unit length and ∇P in intensity per unit length².
+//!
+//! **Forces.** Π is the orthographic projection onto the plane. Every node whose |x3| is below
+//! the band (0.2 by default) gets f = β A_i (∂P/∂x, ∂P/∂y, 0) (eq. 23), where A_i is the node's
+//! lumped material area, so β is a force density per unit material area and the pull does not
+//! depend on the tessellation. Nodes projecting outside the image get no force.
+//!
+//! **Damping weight.** The global damping of [`crate::model::dynamics`] is C = γ Σ κ_i L_iᵀ L_i.
+//! An image force is the gradient of a potential, not a spring, so κ_i is the potential's
+//! curvature scale: κ_i = β A_i P_ref / σ_w², where P_ref is the 99th percentile of P and σ_w the
+//! smoothing width in plane units. A blurred step edge of contrast Δ has P = Δ g_σ(x), whose
+//! curvature at the ridge is exactly P_max / σ², so the global step is then a damped Newton step
+//! on the potential near an edge, and the motion depends on neither β nor the node count.
+
+use crate::model::dynamics::NodalForces;
+use crate::model::fem::Tessellation;
+use bevy::math::{DVec2, DVec3};
+use std::sync::Arc;
+
+/// Default half-width of the band |x3| < band of nodes that feel the image (the paper's 0.2).
+pub const DEFAULT_BAND: f64 = 0.2;
+/// Default Gaussian width σ in pixels.
+pub const DEFAULT_SIGMA: f64 = 2.0;
+/// Default force strength β on the potential of [0, 1] intensities in unit-plane coordinates.
+pub const DEFAULT_IMAGE_BETA: f64 = 1e-3;
+
+/// Damping weight of a node in a flat part of the image, relative to one on a strong edge.
+pub const FLAT_WEIGHT: f64 = 0.1;
+
+/// Where the image sits in the world's x–y plane.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ImageFrame {
+    /// World (x, y) of the image's centre.
+    pub center: DVec2,
+    /// World length of the image's longer side (1: the unit square of the paper).
+    pub extent: f64,
+}
+
+impl Default for ImageFrame {
+    /// The paper's placement: longer side 1, centred on the origin.
+    fn default() -> Self {
+        Self {
+            center: DVec2::ZERO,
+            extent: 1.0,
+        }
+    }
+}
+
+/// Why a potential could not be built.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ImageError {
+    /// Fewer than 2 pixels along a side: no central difference or interpolant exists.
+    TooSmall {
+        /// Width in pixels.
+        width: usize,
+        /// Height in pixels.
+        height: usize,
+    },
+    /// The luminance buffer does not hold width × height values.
+    WrongSize {
+        /// Values given.
+        got: usize,
+        /// width × height.
+        expected: usize,
+    },
+    /// A luminance value is not finite.
+    NonFinite {
+        /// Row-major index of the pixel.
+        index: usize,
+    },
+    /// σ is not a positive finite number.
+    BadSigma(f64),
+    /// The frame's extent is not positive or its centre not finite.
+    BadFrame,
+}
+
+impl std::fmt::Display for ImageError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ImageError::TooSmall { width, height } => write!(
+                f,
+                "image is {width}×{height} pixels; the potential needs at least 2×2"
+            ),
+            ImageError::WrongSize { got, expected } => {
+                write!(f, "luminance has {got} values, expected {expected}")
+            }
+            ImageError::NonFinite { index } => {
+                write!(f, "luminance of pixel {index} is not finite")
+            }
+            ImageError::BadSigma(s) => {
+                write!(f, "sigma = {s}: must be a positive number of pixels")
+            }
+            ImageError::BadFrame => write!(
+                f,
+                "image placement: extent must be positive and the centre finite"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for ImageError {}
+
+/// The image potential P and its gradient ∇P at every pixel, with the image's placement.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImagePotential {
+    width: usize,
+    height: usize,
+    sigma: f64,
+    frame: ImageFrame,
+    /// Plane units per pixel.
+    pitch: f64,
+    luminance: Vec<f64>,
+    p: Vec<f64>,
+    grad: Vec<DVec2>,
+    p_ref: f64,
+    foreground: Vec<bool>,
+}
+
+/// Normalised 1D Gaussian of width `sigma` pixels, radius ⌈3σ⌉.
+fn gaussian_kernel(sigma: f64) -> Vec<f64> {
+    let radius = (3.0 * sigma).ceil() as isize;
+    let mut k: Vec<f64> = (-radius..=radius)
+        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let sum: f64 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= sum);
+    k
+}
+
+/// Convolves rows (`stride` 1) or columns (`stride` = width) with `kernel`, clamping at the edges.
+fn convolve(src: &[f64], width: usize, height: usize, kernel: &[f64], along_x: bool) -> Vec<f64> {
+    let r = (kernel.len() / 2) as isize;
+    let mut out = vec![0.0; src.len()];
+    for row in 0..height {
+        for col in 0..width {
+            let mut acc = 0.0;
+            for (t, w) in kernel.iter().enumerate() {
+                let o = t as isize - r;
+                let (c, rr) = if along_x {
+                    (
+                        (col as isize + o).clamp(0, width as isize - 1) as usize,
+                        row,
+                    )
+                } else {
+                    (
+                        col,
+                        (row as isize + o).clamp(0, height as isize - 1) as usize,
+                    )
+                };
+                acc += w * src[rr * width + c];
+            }
+            out[row * width + col] = acc;
+        }
+    }
+    out
+}
+
+/// Central difference of a pixel field at (col, row) along x (right) and y (up), per pixel;
+/// one-sided at the image border.
+fn pixel_gradient<T>(f: &[T], width: usize, height: usize, col: usize, row: usize) -> [T; 2]
+where
+    T: Copy + std::ops::Sub<Output = T> + std::ops::Div<f64, Output = T>,
+{
+    let at = |c: usize, r: usize| f[r * width + c];
+    let (c0, c1) = (col.saturating_sub(1), (col + 1).min(width - 1));
+    let (r0, r1) = (row.saturating_sub(1), (row + 1).min(height - 1));
+    let dx = (at(c1, row) - at(c0, row)) / (c1 - c0) as f64;
+    // Rows grow downwards; y grows upwards.
+    let dy = (at(col, r0) - at(col, r1)) / (r1 - r0) as f64;
+    [dx, dy]
+}
+
+impl ImagePotential {
+    /// Builds P and ∇P from a row-major luminance image (row 0 at the top, values in [0, 1]),
+    /// smoothed by a Gaussian of `sigma` pixels, placed in the plane by `frame`.
+    pub fn new(
+        width: usize,
+        height: usize,
+        luminance: Vec<f64>,
+        sigma: f64,
+        frame: ImageFrame,
+    ) -> Result<Self, ImageError> {
+        if width < 2 || height < 2 {
+            return Err(ImageError::TooSmall { width, height });
+        }
+        if luminance.len() != width * height {
+            return Err(ImageError::WrongSize {
+                got: luminance.len(),
+                expected: width * height,
+            });
+        }
+        if let Some(index) = luminance.iter().position(|v| !v.is_finite()) {
+            return Err(ImageError::NonFinite { index });
+        }
+        if !(sigma.is_finite() && sigma > 0.0) {
+            return Err(ImageError::BadSigma(sigma));
+        }
+        if !(frame.extent.is_finite() && frame.extent > 0.0 && frame.center.is_finite()) {
+            return Err(ImageError::BadFrame);
+        }
+        let pitch = frame.extent / width.max(height) as f64;
+        let kernel = gaussian_kernel(sigma);
+        let smooth = convolve(
+            &convolve(&luminance, width, height, &kernel, true),
+            width,
+            height,
+            &kernel,
+            false,
+        );
+        let mut p = vec![0.0; width * height];
+        for row in 0..height {
+            for col in 0..width {
+                let [dx, dy] = pixel_gradient(&smooth, width, height, col, row);
+                p[row * width + col] = (dx * dx + dy * dy).sqrt() / pitch;
+            }
+        }
+        let mut grad = vec![DVec2::ZERO; width * height];
+        for row in 0..height {
+            for col in 0..width {
+                let [dx, dy] = pixel_gradient(&p, width, height, col, row);
+                grad[row * width + col] = DVec2::new(dx, dy) / pitch;
+            }
+        }
+        let mut sorted = p.clone();
+        sorted.sort_by(f64::total_cmp);
+        let p_ref = sorted[((sorted.len() - 1) as f64 * 0.99).round() as usize];
+        let foreground = foreground_mask(width, height, &luminance);
+        Ok(Self {
+            width,
+            height,
+            sigma,
+            frame,
+            pitch,
+            luminance,
+            p,
+            grad,
+            p_ref,
+            foreground,
+        })
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// The smoothing width σ in pixels.
+    pub fn sigma(&self) -> f64 {
+        self.sigma
+    }
+
+    /// The image's placement in the plane.
+    pub fn frame(&self) -> ImageFrame {
+        self.frame
+    }
+
+    /// Plane units per pixel.
+    pub fn pitch(&self) -> f64 {
+        self.pitch
+    }
+
+    /// The unsmoothed luminance, row-major, row 0 at the top.
+    pub fn luminance(&self) -> &[f64] {
+        &self.luminance
+    }
+
+    /// P at every pixel, row-major.
+    pub fn potential(&self) -> &[f64] {
+        &self.p
+    }
+
+    /// The foreground, row-major: the pixels on the side of Otsu's threshold that covers less of
+    /// the image's border (an object in front of a background).
+    pub fn foreground(&self) -> &[bool] {
+        &self.foreground
+    }
+
+    /// True when the pixel under a plane point is foreground (false off the image).
+    pub fn in_foreground(&self, x: DVec2) -> bool {
+        if !x.is_finite() || !self.contains(x) {
+            return false;
+        }
+        let p = self.to_pixel(x).round();
+        let c = (p.x.max(0.0) as usize).min(self.width - 1);
+        let r = (p.y.max(0.0) as usize).min(self.height - 1);
+        self.foreground[r * self.width + c]
+    }
+
+    /// The 99th percentile of P: the height of a typical strong edge.
+    pub fn p_ref(&self) -> f64 {
+        self.p_ref
+    }
+
+    /// The curvature scale P_ref / σ_w² of the potential's ridges, per unit length² (see the
+    /// module docs: the damping weight of an image force per unit β A_i).
+    pub fn curvature_scale(&self) -> f64 {
+        let sigma_w = self.sigma * self.pitch;
+        self.p_ref / (sigma_w * sigma_w)
+    }
+
+    /// Plane point of a pixel position (column, row; pixel centres at integers).
+    pub fn to_plane(&self, pixel: DVec2) -> DVec2 {
+        let half = DVec2::new(self.width as f64, self.height as f64) * 0.5;
+        let d = (pixel + DVec2::splat(0.5) - half) * self.pitch;
+        self.frame.center + DVec2::new(d.x, -d.y)
+    }
+
+    /// Pixel position (column, row; pixel centres at integers) of a plane point.
+    pub fn to_pixel(&self, x: DVec2) -> DVec2 {
+        let half = DVec2::new(self.width as f64, self.height as f64) * 0.5;
+        let d = (x - self.frame.center) / self.pitch;
+        DVec2::new(d.x, -d.y) + half - DVec2::splat(0.5)
+    }
+
+    /// True when the plane point lies on the image.
+    pub fn contains(&self, x: DVec2) -> bool {
+        let p = self.to_pixel(x);
+        p.x >= -0.5
+            && p.y >= -0.5
+            && p.x <= self.width as f64 - 0.5
+            && p.y <= self.height as f64 - 0.5
+    }
+
+    /// The four pixels around a plane point and their bilinear weights N_k (the quadrilateral
+    /// element of Fig. 10 with a = b = 1); `None` off the image.
+    fn cell(&self, x: DVec2) -> Option<([usize; 4], [f64; 4])> {
+        if !x.is_finite() || !self.contains(x) {
+            return None;
+        }
+        let p = self.to_pixel(x);
+        let c = p.x.clamp(0.0, (self.width - 1) as f64);
+        let r = p.y.clamp(0.0, (self.height - 1) as f64);
+        let c0 = (c.floor() as usize).min(self.width - 2);
+        let r0 = (r.floor() as usize).min(self.height - 2);
+        let (s, t) = (c - c0 as f64, r - r0 as f64);
+        let i = r0 * self.width + c0;
+        Some((
+            [i, i + 1, i + self.width, i + self.width + 1],
+            [(1.0 - s) * (1.0 - t), s * (1.0 - t), (1.0 - s) * t, s * t],
+        ))
+    }
+
+    /// P at a plane point, bilinear between pixels; 0 off the image.
+    pub fn potential_at(&self, x: DVec2) -> f64 {
+        self.cell(x)
+            .map(|(idx, w)| (0..4).map(|k| w[k] * self.p[idx[k]]).sum())
+            .unwrap_or(0.0)
+    }
+
+    /// ∇P at a plane point: central differences at the four surrounding pixels, bilinear between
+    /// them (section V); zero off the image.
+    pub fn gradient_at(&self, x: DVec2) -> DVec2 {
+        self.cell(x)
+            .map(|(idx, w)| (0..4).map(|k| w[k] * self.grad[idx[k]]).sum())
+            .unwrap_or(DVec2::ZERO)
+    }
+}
+
+/// Signed doubled area of a triangle projected on the x–y plane (> 0: it faces +z).
+pub fn projected_facing(x: &[DVec3], t: &[u32; 3]) -> f64 {
+    let (a, b, c) = (
+        x[t[0] as usize].truncate(),
+        x[t[1] as usize].truncate(),
+        x[t[2] as usize].truncate(),
+    );
+    (b - a).perp_dot(c - a)
+}
+
+/// Calls `f(a, b)` for every edge of the projected outline (the occluding contour seen along z):
+/// the edges whose two triangles face opposite ways.
+pub fn for_each_outline_edge(tess: &Tessellation, x: &[DVec3], mut f: impl FnMut(u32, u32)) {
+    let tris = tess.triangles();
+    for &[a, b, t1, t2] in &tess.edges {
+        let f1 = projected_facing(x, &tris[t1 as usize]) > 0.0;
+        let f2 = projected_facing(x, &tris[t2 as usize]) > 0.0;
+        if f1 != f2 {
+            f(a, b);
+        }
+    }
+}
+
+/// Area-weighted outward normals of the nodes (unnormalised) from the render triangulation.
+pub fn vertex_normals(tess: &Tessellation, x: &[DVec3]) -> Vec<DVec3> {
+    let mut n = vec![DVec3::ZERO; x.len()];
+    for t in tess.triangles() {
+        let [a, b, c] = t.map(|i| x[i as usize]);
+        let face = (b - a).cross(c - a);
+        for &i in t {
+            n[i as usize] += face;
+        }
+    }
+    n
+}
+
+/// The image forces on one model: a shared potential, the strength β and the band.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageForces {
+    /// The potential, shared by every part fitted to the same image.
+    pub potential: Arc<ImagePotential>,
+    /// Force strength β (eq. 23), per unit material area.
+    pub beta: f64,
+    /// Nodes with |x3 − 0| below this feel the image (the paper's 0.2).
+    pub band: f64,
+    /// Only nodes on the projected outline (the occluding contour) feel the image. The paper
+    /// pulls every node in the band; but an image edge is where the contour projects, and a
+    /// part thinner than the band then has all its nodes pulled, so the surest way to put
+    /// nodes on an edge is to flatten the part onto it (a1 → 0). `false` gives the paper's forces.
+    pub outline_only: bool,
+    /// Region (balloon) force, beyond the paper: every acting node is also pushed along its
+    /// outward in-plane normal when it projects onto the foreground and pulled back when it
+    /// does not, with strength `region` × β P_ref / σ_w (a fraction of a strong edge's pull).
+    /// It settles exactly on the foreground's boundary and keeps a part that straddles a single
+    /// edge from flattening onto it (Cohen's balloon, 1991, with its sign from the foreground).
+    /// 0 gives the paper's forces.
+    pub region: f64,
+}
+
+impl ImageForces {
+    /// Forces of `potential` with the default β and band, on the outline only.
+    pub fn new(potential: Arc<ImagePotential>) -> Self {
+        Self {
+            potential,
+            beta: DEFAULT_IMAGE_BETA,
+            band: DEFAULT_BAND,
+            outline_only: true,
+            region: 0.0,
+        }
+    }
+
+    /// True when node position `x` is within the band and projects onto the image.
+    fn acts_on(&self, x: DVec3) -> bool {
+        x.z.abs() < self.band && self.potential.contains(x.truncate())
+    }
+
+    /// The nodes that feel the image: in the band, on the image, and (with `outline_only`) on the
+    /// projected outline.
+    pub fn acting_nodes(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut Vec<bool>) {
+        out.clear();
+        if self.outline_only {
+            out.resize(node_x.len(), false);
+            for_each_outline_edge(tess, node_x, |a, b| {
+                out[a as usize] = true;
+                out[b as usize] = true;
+            });
+            for (flag, &x) in out.iter_mut().zip(node_x) {
+                *flag &= self.acts_on(x);
+            }
+        } else {
+            out.extend(node_x.iter().map(|&x| self.acts_on(x)));
+        }
+    }
+
+    /// Adds f_i = β A_i (∂P/∂x, ∂P/∂y, 0) (eq. 23) and the damping weight κ_i of the module docs
+    /// to every acting node.
+    pub fn accumulate(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut NodalForces) {
+        let kappa = self.beta * self.potential.curvature_scale();
+        let mut acting = Vec::new();
+        self.acting_nodes(tess, node_x, &mut acting);
+        if self.region > 0.0 {
+            let sigma_w = self.potential.sigma() * self.potential.pitch();
+            let push = self.region * self.beta * self.potential.p_ref() / sigma_w;
+            let normals = vertex_normals(tess, node_x);
+            for (i, &x) in node_x.iter().enumerate() {
+                let n = normals[i].truncate().normalize_or_zero();
+                if acting[i] && n != DVec2::ZERO {
+                    let sign = if self.potential.in_foreground(x.truncate()) {
+                        1.0
+                    } else {
+                        -1.0
+                    };
+                    out.force[i] += (sign * push * tess.node_area[i] * n).extend(0.0);
+                }
+            }
+        }
+        for (i, &x) in node_x.iter().enumerate() {
+            if !acting[i] {
+                continue;
+            }
+            let g = self.potential.gradient_at(x.truncate());
+            let a = tess.node_area[i];
+            let near_edge = (self.potential.potential_at(x.truncate()) / self.potential.p_ref())
+                .clamp(0.0, 1.0);
+            out.force[i] += self.beta * a * DVec3::new(g.x, g.y, 0.0);
+            out.stiffness[i] += kappa * a * (FLAT_WEIGHT + (1.0 - FLAT_WEIGHT) * near_edge);
+        }
+    }
+
+    /// The potential energy E = −β Σ A_i P(Π x_i) over the acting nodes, whose negative gradient
+    /// the forces approximate (with the set of acting nodes held fixed).
+    pub fn energy(&self, tess: &Tessellation, node_x: &[DVec3]) -> f64 {
+        let mut acting = Vec::new();
+        self.acting_nodes(tess, node_x, &mut acting);
+        -node_x
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| acting[*i])
+            .map(|(i, x)| self.beta * tess.node_area[i] * self.potential.potential_at(x.truncate()))
+            .sum::<f64>()
+    }
+}
+
+/// Otsu's threshold of luminance values in [0, 1] (256 bins).
+pub fn otsu_threshold(luminance: &[f64]) -> f64 {
+    let mut hist = [0usize; 256];
+    for &v in luminance {
+        hist[(v.clamp(0.0, 1.0) * 255.0).round() as usize] += 1;
+    }
+    let total = luminance.len() as f64;
+    let sum_all: f64 = hist
+        .iter()
+        .enumerate()
+        .map(|(i, &h)| i as f64 * h as f64)
+        .sum();
+    let (mut w0, mut sum0, mut best, mut best_t) = (0.0, 0.0, -1.0, 0usize);
+    for (t, &h) in hist.iter().enumerate() {
+        w0 += h as f64;
+        sum0 += t as f64 * h as f64;
+        let w1 = total - w0;
+        if w0 == 0.0 || w1 == 0.0 {
+            continue;
+        }
+        let (m0, m1) = (sum0 / w0, (sum_all - sum0) / w1);
+        let between = w0 * w1 * (m0 - m1).powi(2);
+        if between > best {
+            best = between;
+            best_t = t;
+        }
+    }
+    (best_t as f64 + 0.5) / 255.0
+}
+
+/// See [`ImagePotential::foreground`].
+fn foreground_mask(w: usize, h: usize, lum: &[f64]) -> Vec<bool> {
+    let t = otsu_threshold(lum);
+    let (mut bright, mut border) = (0usize, 0usize);
+    for row in 0..h {
+        for col in 0..w {
+            if row == 0 || col == 0 || row + 1 == h || col + 1 == w {
+                border += 1;
+                bright += (lum[row * w + col] > t) as usize;
+            }
+        }
+    }
+    let foreground_bright = 2 * bright < border;
+    lum.iter().map(|&v| (v > t) == foreground_bright).collect()
+}
+
+/// Converts 8-bit or float image data to luminance in [0, 1] (Rec. 709 weights on RGB).
+pub fn luminance_of(rgb: [f64; 3]) -> f64 {
+    0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A smooth image: a Gaussian blob of intensity, sampled at pixel centres.
+    fn blob(width: usize, height: usize, r: f64) -> Vec<f64> {
+        let mut v = Vec::with_capacity(width * height);
+        for row in 0..height {
+            for col in 0..width {
+                let x = col as f64 - width as f64 / 2.0;
+                let y = row as f64 - height as f64 / 2.0;
+                v.push((-(x * x + y * y) / (2.0 * r * r)).exp());
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn otsu_splits_two_levels_between_them() {
+        let lum: Vec<f64> = (0..100).map(|i| if i < 30 { 0.2 } else { 0.7 }).collect();
+        let t = otsu_threshold(&lum);
+        assert!(t > 0.2 && t < 0.7, "{t}");
+    }
+
+    #[test]
+    fn foreground_is_the_side_that_misses_the_border() {
+        // A dark square on a bright background: the dark side is the foreground.
+        let lum: Vec<f64> = (0..100)
+            .map(|i| {
+                if (3..7).contains(&(i % 10)) && (3..7).contains(&(i / 10)) {
+                    0.1
+                } else {
+                    0.9
+                }
+            })
+            .collect();
+        let p = ImagePotential::new(10, 10, lum, 1.0, ImageFrame::default()).unwrap();
+        assert_eq!(p.foreground().iter().filter(|&&f| f).count(), 16);
+        assert!(p.in_foreground(p.to_plane(DVec2::new(4.0, 5.0))));
+        assert!(!p.in_foreground(p.to_plane(DVec2::new(1.0, 5.0))));
+        assert!(!p.in_foreground(DVec2::new(5.0, 5.0)));
+    }
+
+    #[test]
+    fn pixel_and_plane_coordinates_are_inverse_and_y_points_up() {
+        let p = ImagePotential::new(
+            40,
+            20,
+            vec![0.0; 800],
+            1.0,
+            ImageFrame {
+                center: DVec2::new(0.3, -0.2),
+                extent: 2.0,
+            },
+        )
+        .unwrap();
+        assert_eq!(p.pitch(), 0.05);
+        let q = DVec2::new(3.25, 7.5);
+        assert!((p.to_pixel(p.to_plane(q)) - q).length() < 1e-12);
+        // The top-left pixel is up and left of the centre.
+        let tl = p.to_plane(DVec2::ZERO);
+        assert!(tl.x < 0.3 && tl.y > -0.2);
+        assert!((tl - DVec2::new(0.3 - 0.975, -0.2 + 0.475)).length() < 1e-12);
+        assert!(p.contains(DVec2::new(0.3 + 0.99, -0.2)));
+        assert!(!p.contains(DVec2::new(0.3 + 1.01, -0.2)));
+    }
+
+    #[test]
+    fn potential_of_a_smoothed_step_edge_matches_the_analytic_one() {
+        // A vertical step edge from 0 to 1 at column 50 (between pixels 49 and 50).
+        let (w, h) = (100, 8);
+        let lum: Vec<f64> = (0..w * h)
+            .map(|i| if i % w >= 50 { 1.0 } else { 0.0 })
+            .collect();
+        let sigma = 3.0;
+        let p = ImagePotential::new(w, h, lum, sigma, ImageFrame::default()).unwrap();
+        // Plane units: pitch = 1/100; P = g_σ(x) (unit contrast), peak 1/(σ_w √(2π)).
+        let sigma_w = sigma * p.pitch();
+        let peak = 1.0 / (sigma_w * (2.0 * std::f64::consts::PI).sqrt());
+        let at = |col: f64| p.potential_at(p.to_plane(DVec2::new(col, 4.0)));
+        // Central differences over two pixels and sampling at pixel centres cost a few per cent.
+        assert!(
+            (at(49.5) - peak).abs() < 0.04 * peak,
+            "{} vs {peak}",
+            at(49.5)
+        );
+        let x = 4.0 * p.pitch();
+        let expected = peak * (-(x * x) / (2.0 * sigma_w * sigma_w)).exp();
+        assert!((at(45.5) - expected).abs() < 0.03 * peak);
+        // ∇P points towards the edge from both sides, and vanishes far away.
+        assert!(p.gradient_at(p.to_plane(DVec2::new(46.0, 4.0))).x > 0.0);
+        assert!(p.gradient_at(p.to_plane(DVec2::new(53.0, 4.0))).x < 0.0);
+        assert_eq!(
+            p.gradient_at(p.to_plane(DVec2::new(10.0, 4.0))),
+            DVec2::ZERO
+        );
+        // The 99th percentile sits on the ridge.
+        assert!((p.p_ref() - at(49.5)).abs() < 0.05 * peak);
+    }
+
+    #[test]
+    fn gradient_is_the_central_difference_at_pixels_and_bilinear_between() {
+        let (w, h) = (30, 24);
+        let p = ImagePotential::new(w, h, blob(w, h, 5.0), 1.5, ImageFrame::default()).unwrap();
+        let pot = p.potential();
+        let (col, row) = (9usize, 14usize);
+        let expected = DVec2::new(
+            pot[row * w + col + 1] - pot[row * w + col - 1],
+            pot[(row - 1) * w + col] - pot[(row + 1) * w + col],
+        ) / (2.0 * p.pitch());
+        let at = |c: f64, r: f64| p.gradient_at(p.to_plane(DVec2::new(c, r)));
+        assert!((at(9.0, 14.0) - expected).length() < 1e-9 * expected.length());
+        // Halfway between four pixels: their mean.
+        let mean = (at(9.0, 14.0) + at(10.0, 14.0) + at(9.0, 15.0) + at(10.0, 15.0)) / 4.0;
+        assert!((at(9.5, 14.5) - mean).length() < 1e-9 * mean.length());
+    }
+
+    #[test]
+    fn interpolated_gradient_agrees_with_central_differences_of_the_potential() {
+        // On a smooth, finely sampled potential the interpolated ∇P is the derivative of P.
+        let (w, h) = (120, 120);
+        let p = ImagePotential::new(w, h, blob(w, h, 25.0), 2.0, ImageFrame::default()).unwrap();
+        let step = p.pitch();
+        for &(c, r) in &[(40.3, 61.7), (75.6, 30.2), (60.0, 88.9)] {
+            let x = p.to_plane(DVec2::new(c, r));
+            let g = p.gradient_at(x);
+            let fd = DVec2::new(
+                p.potential_at(x + DVec2::X * step) - p.potential_at(x - DVec2::X * step),
+                p.potential_at(x + DVec2::Y * step) - p.potential_at(x - DVec2::Y * step),
+            ) / (2.0 * step);
+            assert!(
+                (g - fd).length() < 0.03 * g.length().max(1e-9),
+                "at ({c},{r}): {g} vs {fd}"
+            );
+        }
+    }
+
+    #[test]
+    fn bad_images_and_sigmas_are_refused() {
+        let f = ImageFrame::default();
+        assert_eq!(
+            ImagePotential::new(1, 1, vec![0.5], 1.0, f),
+            Err(ImageError::TooSmall {
+                width: 1,
+                height: 1
+            })
+        );
+        assert!(matches!(
+            ImagePotential::new(4, 4, vec![0.5; 15], 1.0, f),
+            Err(ImageError::WrongSize { .. })
+        ));
+        let mut nan = vec![0.5; 16];
+        nan[5] = f64::NAN;
+        assert_eq!(
+            ImagePotential::new(4, 4, nan, 1.0, f),
+            Err(ImageError::NonFinite { index: 5 })
+        );
+        for s in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(matches!(
+                ImagePotential::new(4, 4, vec![0.5; 16], s, f),
+                Err(ImageError::BadSigma(_))
+            ));
+        }
+        let bad = ImageFrame {
+            center: DVec2::ZERO,
+            extent: 0.0,
+        };
+        assert_eq!(
+            ImagePotential::new(4, 4, vec![0.5; 16], 1.0, bad),
+            Err(ImageError::BadFrame)
+        );
+    }
+
+    #[test]
+    fn forces_act_in_the_band_parallel_to_the_plane_and_follow_the_energy() {
+        use crate::model::dynamics::{ModelState, generalized_global_forces};
+        use crate::model::superquadric::SuperquadricParams;
+        let (w, h) = (160, 160);
+        let pot = Arc::new(
+            ImagePotential::new(w, h, blob(w, h, 30.0), 3.0, ImageFrame::default()).unwrap(),
+        );
+        let forces = ImageForces {
+            potential: pot,
+            beta: 2.0,
+            band: 0.05,
+            outline_only: false,
+            region: 0.0,
+        };
+        let tess = Tessellation::new(12);
+        let shape = SuperquadricParams {
+            a: 0.2,
+            a1: 1.0,
+            a2: 0.8,
+            a3: 0.6,
+            e1: 0.8,
+            e2: 1.0,
+        };
+        let state = ModelState::new(
+            &tess,
+            DVec3::new(0.03, -0.02, 0.01),
+            bevy::math::DQuat::from_rotation_x(0.3).normalize(),
+            shape,
+        );
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        let mut nf = NodalForces::new(tess.node_count());
+        forces.accumulate(&tess, &x, &mut nf);
+        let mut acted = 0;
+        for (i, xi) in x.iter().enumerate() {
+            assert_eq!(nf.force[i].z, 0.0);
+            if xi.z.abs() >= 0.05 {
+                assert_eq!(nf.force[i], DVec3::ZERO);
+                assert_eq!(nf.stiffness[i], 0.0);
+            } else {
+                acted += 1;
+                assert!(nf.stiffness[i] > 0.0);
+            }
+        }
+        assert!(acted > 10 && acted < tess.node_count());
+        // Translation in x and y: f_c ≈ −∂E/∂c (central differences, nodes kept in the band).
+        let fq = generalized_global_forces(&tess, &state, &nf);
+        let energy = |dc: DVec3| {
+            let mut s = state.clone();
+            s.translation += dc;
+            let mut xs = Vec::new();
+            s.node_positions(&tess, &mut xs);
+            // Same band membership as at the base state.
+            let shifted: Vec<DVec3> = xs
+                .iter()
+                .zip(&x)
+                .map(|(a, b)| DVec3::new(a.x, a.y, b.z))
+                .collect();
+            forces.energy(&tess, &shifted)
+        };
+        let hstep = 1e-4;
+        for (k, dir) in [DVec3::X, DVec3::Y].into_iter().enumerate() {
+            let fd = -(energy(dir * hstep) - energy(-dir * hstep)) / (2.0 * hstep);
+            assert!(
+                (fq[k] - fd).abs()
+                    < 0.02
+                        * fq[k]
+                            .abs()
+                            .max(1e-3 * fq[..2].iter().map(|v| v.abs()).sum::<f64>()),
+                "f_c[{k}] = {} vs −∂E/∂c = {fd}",
+                fq[k]
+            );
+        }
+    }
+}
