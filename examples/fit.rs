@@ -1,39 +1,60 @@
 //! Command-line fitter: fits a deformable superquadric to a point cloud.
 //!
 //! ```text
-//! cargo run --release --example fit -- (POINTS | --paper egg|mug) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F]
-//!     [--global-only] [--migrate] [--reassign N] [--max-steps N] [--quiet] [--app]
-//!     [--out-mesh FILE.obj] [--out-params FILE.json]
+//! cargo run --release --example fit -- (POINTS | --image IMAGE | --paper egg|mug|pestle|doll)
+//!     [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] [--max-steps N] [--out-mesh FILE.obj]
+//!     [--out-params FILE.json] [--quiet]
+//!     points only: [--global-only] [--migrate] [--reassign N] [--app]
+//!     images only: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth]
+//!                  [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]
 //! ```
 //!
 //! POINTS is an OBJ (vertices are the points) or PLY file; `--paper egg` / `--paper mug` runs the
-//! paper's range experiment on its rebuilt data with the paper's settings (options given after it
-//! override them). `--app` runs the same fit through `DeformableSqPlugin` in a headless Bevy app
+//! paper's range experiment on its rebuilt data with the paper's settings, `--paper pestle` /
+//! `--paper doll` its image experiments on the shipped stand-in images (options given after it
+//! override them). IMAGE is a PNG or JPEG; each `--part` places one part from four pixel points
+//! (both ends of the major axis, then both ends of the minor axis); without `--part` the `--parts`
+//! largest blobs of the thresholded image are fitted (default 1). `--out-overlay` draws the fitted
+//! outlines over the image. Image fits print one JSON line per part, then one for the image
+//! (`outline_*`: mean P/P_ref along the projected outlines; `iou_*`: silhouettes vs foreground). `--app` runs the same fit through `DeformableSqPlugin` in a headless Bevy app
 //! (every initial hypothesis an entity, simulated in parallel); the result is the same. Progress goes to stderr; the last line
 //! on stdout is a one-line JSON summary. Bad input exits with code 2 and a one-line message.
 
-use bevy::math::DVec3;
-use bevy_deformable_sq::io::{FittedParams, load_points, write_model_obj};
+use bevy::math::{DVec2, DVec3};
+use bevy_deformable_sq::io::{
+    FittedParams, load_luminance, load_points, write_model_obj, write_obj, write_overlay_png,
+};
+use bevy_deformable_sq::model::dynamics::ModelState;
+use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{FitOptions, Stage, fit};
+use bevy_deformable_sq::model::forces::image::{DEFAULT_SIGMA, ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::forces::range::InfluenceMode;
+use bevy_deformable_sq::model::image_fit::{
+    ImageFitOptions, PartAxes, doll_experiment, fit_image, outline_potential, outline_segments,
+    parts_on, pestle_experiment, segment, silhouette_iou,
+};
 use bevy_deformable_sq::plugin::headless::fit_headless;
 use bevy_deformable_sq::synthetic;
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::sync::Arc;
 use std::time::Instant;
 
-const USAGE: &str = "usage: fit (POINTS | --paper egg|mug) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] [--global-only] [--migrate] \
-[--reassign N] [--max-steps N] [--quiet] [--app] [--out-mesh FILE.obj] [--out-params FILE.json]";
+const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] \
+[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--migrate] [--reassign N] [--app]; \
+images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]";
 
-/// Where the points come from.
+/// Where the data come from.
 enum Source {
     File(PathBuf),
     Paper(&'static str),
+    Image(PathBuf),
 }
 
 struct Args {
     source: Source,
     options: FitOptions,
+    image: ImageArgs,
     out_mesh: Option<PathBuf>,
     out_params: Option<PathBuf>,
     quiet: bool,
@@ -45,6 +66,8 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
     let mut points = None;
     let mut paper = None;
     let mut o = FitOptions::default();
+    let mut image = ImageArgs::default();
+    let mut image_path = None;
     let (mut out_mesh, mut out_params, mut quiet, mut app) = (None, None, false, false);
     fn value<T: std::str::FromStr>(flag: &str, v: Option<String>) -> Result<T, String> {
         let v = v.ok_or_else(|| format!("{flag} needs a value"))?;
@@ -70,24 +93,86 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
                     ));
                 }
                 o.k = k;
+                image.options.k = k;
             }
             "--k" => {
                 o.k = value(&a, args.next())?;
                 if o.k < 3 {
                     return Err(format!("--k {}: k must be at least 3", o.k));
                 }
+                image.options.k = o.k;
             }
-            "--w0" => o.dynamics.w0 = finite(&a, value(&a, args.next())?, 0.0)?,
-            "--w1" => o.dynamics.w1 = finite(&a, value(&a, args.next())?, 0.0)?,
-            "--beta" => o.beta = finite(&a, value(&a, args.next())?, f64::MIN_POSITIVE)?,
+            "--w0" => {
+                o.dynamics.w0 = finite(&a, value(&a, args.next())?, 0.0)?;
+                image.options.dynamics.w0 = o.dynamics.w0;
+            }
+            "--w1" => {
+                o.dynamics.w1 = finite(&a, value(&a, args.next())?, 0.0)?;
+                image.options.dynamics.w1 = o.dynamics.w1;
+            }
+            "--beta" => {
+                o.beta = finite(&a, value(&a, args.next())?, f64::MIN_POSITIVE)?;
+                image.options.beta = o.beta;
+            }
+            "--image" => {
+                image_path = Some(PathBuf::from(args.next().ok_or("--image needs a file")?))
+            }
+            "--sigma" => image.sigma = finite(&a, value(&a, args.next())?, f64::MIN_POSITIVE)?,
+            "--band" => {
+                image.options.band = finite(&a, value(&a, args.next())?, f64::MIN_POSITIVE)?
+            }
+            "--paper-band" => image.options.outline_only = false,
+            "--free-depth" => image.options.planar = false,
+            "--region" => image.options.region = finite(&a, value(&a, args.next())?, 0.0)?,
+            "--parts" => image.auto_parts = value(&a, args.next())?,
+            "--part" => {
+                let v: String = args.next().ok_or("--part needs x0,y0,x1,y1,x2,y2,x3,y3")?;
+                let n: Vec<f64> = v
+                    .split(',')
+                    .map(|t| t.trim().parse::<f64>())
+                    .collect::<Result<_, _>>()
+                    .map_err(|_| {
+                        format!("--part {v:?}: expected 8 numbers x0,y0,x1,y1,x2,y2,x3,y3 (pixels)")
+                    })?;
+                if n.len() != 8 || !n.iter().all(|x| x.is_finite()) {
+                    return Err(format!(
+                        "--part {v:?}: expected 8 finite numbers x0,y0,x1,y1,x2,y2,x3,y3 (pixels)"
+                    ));
+                }
+                image
+                    .parts
+                    .push([0, 2, 4, 6].map(|i| DVec2::new(n[i], n[i + 1])));
+            }
+            "--out-overlay" => {
+                image.overlay = Some(PathBuf::from(
+                    args.next().ok_or("--out-overlay needs a file")?,
+                ))
+            }
             "--reassign" => o.reassign_every = value::<u32>(&a, args.next())?.max(1),
-            "--max-steps" => o.max_steps = value(&a, args.next())?,
+            "--max-steps" => {
+                o.max_steps = value(&a, args.next())?;
+                image.options.max_steps = o.max_steps as usize;
+            }
             "--paper" => {
-                let name = args.next().ok_or("--paper needs egg or mug")?;
+                let name = args
+                    .next()
+                    .ok_or("--paper needs egg, mug, pestle or doll")?;
+                let image_experiment = match name.as_str() {
+                    "pestle" => Some(pestle_experiment()),
+                    "doll" => Some(doll_experiment()),
+                    _ => None,
+                };
+                if let Some(e) = image_experiment {
+                    image_path = Some(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(e.image));
+                    image.sigma = e.sigma;
+                    image.options = e.options;
+                    image.parts = e.parts.iter().map(|p| p.1).collect();
+                    continue;
+                }
                 let (pts, opts) = match name.as_str() {
                     "egg" => synthetic::egg_experiment(),
                     "mug" => synthetic::mug_experiment(),
-                    _ => return Err(format!("--paper {name}: expected egg or mug")),
+                    _ => return Err(format!("--paper {name}: expected egg, mug, pestle or doll")),
                 };
                 paper = Some((if name == "egg" { "egg" } else { "mug" }, pts));
                 o = opts;
@@ -115,11 +200,12 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
             }
         }
     }
-    let (source, paper_points) = match (points, paper) {
-        (Some(p), None) => (Source::File(p), None),
-        (None, Some((name, pts))) => (Source::Paper(name), Some(pts)),
-        (Some(_), Some(_)) => return Err(format!("give POINTS or --paper, not both\n{USAGE}")),
-        (None, None) => return Err(format!("no POINTS file given\n{USAGE}")),
+    let (source, paper_points) = match (points, paper, image_path) {
+        (Some(p), None, None) => (Source::File(p), None),
+        (None, Some((name, pts)), None) => (Source::Paper(name), Some(pts)),
+        (None, None, Some(p)) => (Source::Image(p), None),
+        (None, None, None) => return Err(format!("no POINTS file given\n{USAGE}")),
+        _ => return Err(format!("give one of POINTS, --paper or --image\n{USAGE}")),
     };
     let args = Args {
         source,
@@ -128,12 +214,16 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
         out_params,
         quiet,
         app,
+        image,
     };
     Ok((args, paper_points))
 }
 
 fn run() -> Result<(), String> {
     let (args, paper_points) = parse_args()?;
+    if let Source::Image(path) = &args.source {
+        return run_image(path, &args);
+    }
     let (points, name) = match (&args.source, paper_points) {
         (Source::File(path), _) => (
             load_points(path).map_err(|e| e.to_string())?,
@@ -141,6 +231,7 @@ fn run() -> Result<(), String> {
         ),
         (Source::Paper(name), Some(pts)) => (pts, format!("paper:{name}")),
         (Source::Paper(name), None) => return Err(format!("no data for --paper {name}")),
+        (Source::Image(_), _) => unreachable!("image sources return above"),
     };
     let start = Instant::now();
     let quiet = args.quiet;
@@ -192,6 +283,120 @@ fn run() -> Result<(), String> {
         "max": r.max,
         "a": params.shape.a, "a1": params.shape.a1, "a2": params.shape.a2, "a3": params.shape.a3,
         "e1": params.shape.e1, "e2": params.shape.e2,
+    });
+    println!("{summary}");
+    Ok(())
+}
+
+/// Image-fit settings from the command line.
+struct ImageArgs {
+    options: ImageFitOptions,
+    sigma: f64,
+    parts: Vec<[DVec2; 4]>,
+    auto_parts: usize,
+    overlay: Option<PathBuf>,
+}
+
+impl Default for ImageArgs {
+    fn default() -> Self {
+        Self {
+            options: ImageFitOptions::default(),
+            sigma: DEFAULT_SIGMA,
+            parts: Vec::new(),
+            auto_parts: 1,
+            overlay: None,
+        }
+    }
+}
+
+/// Fits parts to an image: placed by `--part` four-point sets, or else the `--parts` largest
+/// blobs of the thresholded image. One JSON line per part, then one for the whole image.
+fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
+    let ia = &args.image;
+    let (w, h, lum) = load_luminance(path).map_err(|e| e.to_string())?;
+    let potential = Arc::new(
+        ImagePotential::new(w, h, lum, ia.sigma, ImageFrame::default())
+            .map_err(|e| format!("{}: {e}", path.display()))?,
+    );
+    let placed: Vec<PartAxes> = if ia.parts.is_empty() {
+        let blobs = segment(&potential, (w * h / 1000).max(20));
+        if blobs.is_empty() {
+            return Err(format!(
+                "{}: no foreground blob found to place a part",
+                path.display()
+            ));
+        }
+        blobs
+            .iter()
+            .take(ia.auto_parts.max(1))
+            .map(|b| PartAxes::from_blob(&potential, b))
+            .collect::<Result<_, _>>()
+            .map_err(|e| format!("{}: {e}", path.display()))?
+    } else {
+        ia.parts
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                PartAxes::from_points(&potential, *p).map_err(|e| format!("--part {}: {e}", i + 1))
+            })
+            .collect::<Result<_, _>>()?
+    };
+    let start = Instant::now();
+    let fits = fit_image(potential.clone(), &placed, &ia.options)
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    let wall = start.elapsed();
+    let tess = Tessellation::new(ia.options.k);
+    let positions = |state: &ModelState| {
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        x
+    };
+    let before: Vec<Vec<DVec3>> = placed.iter().map(|p| positions(&p.state(&tess))).collect();
+    let after: Vec<Vec<DVec3>> = fits.iter().map(|f| positions(&f.state)).collect();
+    if let Some(out) = &args.out_mesh {
+        let mut vertices = Vec::new();
+        let mut triangles = Vec::new();
+        for x in &after {
+            let base = vertices.len() as u32;
+            vertices.extend_from_slice(x);
+            triangles.extend(tess.triangles().iter().map(|t| t.map(|i| i + base)));
+        }
+        let note = format!(
+            "{} deformable superquadrics fitted to {}",
+            after.len(),
+            path.display()
+        );
+        write_obj(out, &vertices, &triangles, &note).map_err(|e| e.to_string())?;
+    }
+    if let Some(out) = &ia.overlay {
+        let outlines: Vec<_> = after.iter().map(|x| outline_segments(&tess, x)).collect();
+        write_overlay_png(out, &potential, &outlines).map_err(|e| e.to_string())?;
+    }
+    let mut all_params = Vec::new();
+    for (i, f) in fits.iter().enumerate() {
+        let s = &f.state;
+        let line = serde_json::json!({
+            "file": path.display().to_string(), "part": i + 1, "steps": f.steps,
+            "global_steps": f.global_steps, "converged": f.converged, "nodes": tess.node_count(),
+            "outline_before": f.outline_before, "outline_after": f.outline_after,
+            "translation": s.translation.to_array(), "a": s.shape.a, "a1": s.shape.a1,
+            "a2": s.shape.a2, "a3": s.shape.a3, "e1": s.shape.e1, "e2": s.shape.e2,
+        });
+        println!("{line}");
+        all_params.push(line);
+    }
+    if let Some(out) = &args.out_params {
+        let json = serde_json::to_string_pretty(&all_params).map_err(|e| e.to_string())?;
+        std::fs::write(out, json).map_err(|e| format!("{}: cannot write: {e}", out.display()))?;
+    }
+    let summary = serde_json::json!({
+        "file": path.display().to_string(), "parts": fits.len(),
+        "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
+        "converged": fits.iter().all(|f| f.converged),
+        "outline_before": outline_potential(&potential, &parts_on(&tess, &before)),
+        "outline_after": outline_potential(&potential, &parts_on(&tess, &after)),
+        "iou_before": silhouette_iou(&potential, &parts_on(&tess, &before)),
+        "iou_after": silhouette_iou(&potential, &parts_on(&tess, &after)),
     });
     println!("{summary}");
     Ok(())

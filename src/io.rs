@@ -198,6 +198,75 @@ fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
     Ok(points)
 }
 
+/// A decoded image as row-major luminance in [0, 1] (row 0 at the top): width, height, values.
+pub type Luminance = (usize, usize, Vec<f64>);
+
+/// Decodes PNG or JPEG bytes (format sniffed from the contents) to luminance (Rec. 709 weights;
+/// alpha ignored). `path` only names the source in errors.
+pub fn decode_luminance(path: &Path, bytes: &[u8]) -> Result<Luminance, IoError> {
+    let img = image::load_from_memory(bytes)
+        .map_err(|e| err(path, format!("cannot decode the image: {e}")))?;
+    let rgb = img.to_rgb32f();
+    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+    if w < 2 || h < 2 {
+        return Err(err(
+            path,
+            format!("image is {w}×{h} pixels; the potential needs at least 2×2"),
+        ));
+    }
+    let lum = rgb
+        .pixels()
+        .map(|p| crate::model::forces::image::luminance_of(p.0.map(f64::from)))
+        .collect();
+    Ok((w, h, lum))
+}
+
+/// Reads a PNG or JPEG image file as luminance (see [`decode_luminance`]).
+pub fn load_luminance(path: &Path) -> Result<Luminance, IoError> {
+    if path.is_dir() {
+        return Err(err(path, "is a directory, not an image"));
+    }
+    let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    decode_luminance(path, &bytes)
+}
+
+/// Writes the image (dimmed luminance) with the projected outlines of models drawn over it, one
+/// colour per model, as a PNG: a picture of an image fit.
+pub fn write_overlay_png(
+    path: &Path,
+    potential: &crate::model::forces::image::ImagePotential,
+    outlines: &[Vec<[bevy::math::DVec2; 2]>],
+) -> Result<(), IoError> {
+    const COLOURS: [[u8; 3]; 6] = [
+        [255, 60, 40],
+        [40, 200, 255],
+        [255, 210, 0],
+        [90, 255, 90],
+        [255, 80, 255],
+        [255, 150, 40],
+    ];
+    let (w, h) = (potential.width() as u32, potential.height() as u32);
+    let mut img = image::RgbImage::from_fn(w, h, |c, r| {
+        let v = (potential.luminance()[(r * w + c) as usize] * 160.0 + 40.0).clamp(0.0, 255.0);
+        image::Rgb([v as u8; 3])
+    });
+    for (m, segments) in outlines.iter().enumerate() {
+        let colour = image::Rgb(COLOURS[m % COLOURS.len()]);
+        for [a, b] in segments {
+            let (pa, pb) = (potential.to_pixel(*a), potential.to_pixel(*b));
+            let n = ((pb - pa).length().ceil() as usize * 2).max(1);
+            for s in 0..=n {
+                let p = (pa + (pb - pa) * (s as f64 / n as f64)).round();
+                if p.x >= 0.0 && p.y >= 0.0 && p.x < w as f64 && p.y < h as f64 {
+                    img.put_pixel(p.x as u32, p.y as u32, colour);
+                }
+            }
+        }
+    }
+    img.save_with_format(path, image::ImageFormat::Png)
+        .map_err(|e| err(path, format!("cannot write: {e}")))
+}
+
 /// Writes a triangle mesh as OBJ (`v` lines, then 1-based `f` lines) with a comment header.
 pub fn write_obj(
     path: &Path,
@@ -294,6 +363,41 @@ mod tests {
         let p = dir.join(name);
         std::fs::write(&p, contents).unwrap();
         p
+    }
+
+    #[test]
+    fn images_decode_to_luminance_and_bad_images_are_refused() {
+        let mut png = Vec::new();
+        image::RgbImage::from_fn(3, 2, |c, _| {
+            image::Rgb(if c == 0 { [255; 3] } else { [0, 255, 0] })
+        })
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+        let (w, h, lum) = load_luminance(&temp("ok.png", &png)).unwrap();
+        assert_eq!((w, h), (3, 2));
+        assert!((lum[0] - 1.0).abs() < 1e-6 && (lum[1] - 0.7152).abs() < 1e-6);
+        let mut tiny = Vec::new();
+        image::GrayImage::new(1, 1)
+            .write_to(
+                &mut std::io::Cursor::new(&mut tiny),
+                image::ImageFormat::Png,
+            )
+            .unwrap();
+        let e = load_luminance(&temp("tiny.png", &tiny)).unwrap_err();
+        assert!(
+            e.to_string().contains("tiny.png") && e.message.contains("1×1"),
+            "{e}"
+        );
+        let e = load_luminance(&temp("corrupt.png", b"\x89PNG not really")).unwrap_err();
+        assert!(
+            e.to_string().contains("corrupt.png") && e.message.contains("decode"),
+            "{e}"
+        );
+        let e = load_luminance(Path::new("/nonexistent/missing.png")).unwrap_err();
+        assert!(
+            e.to_string().contains("missing.png") && e.message.contains("cannot read"),
+            "{e}"
+        );
     }
 
     #[test]

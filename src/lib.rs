@@ -29,8 +29,8 @@ pub mod prelude {
     #[cfg(feature = "debug_render")]
     pub use crate::debug_render::{DebugRenderConfig, DeformableSqDebugPlugin};
     pub use crate::plugin::{
-        DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, LocalDofs, ModelSettings,
-        RangeData, RigidState, SimControl, Spring, SpringForces,
+        DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, ImageData, LocalDofs,
+        ModelSettings, RangeData, RigidState, SimControl, Spring, SpringForces,
     };
     pub use crate::render::{ModelColor, ModelMesh};
 }

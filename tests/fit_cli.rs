@@ -167,3 +167,83 @@ fn fits_a_shipped_cloud_and_writes_mesh_and_params() {
         assert!(p.get(key).is_some(), "params lack {key}");
     }
 }
+
+#[test]
+fn bad_images_and_image_options_exit_2_with_a_one_line_error() {
+    let dir = scratch();
+    let horse = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/data/horse.png");
+    let missing = dir.join("missing.png").display().to_string();
+    assert_bad_input(&["--image", &missing], "missing.png", "cannot read");
+    let corrupt = dir.join("corrupt.png");
+    std::fs::write(&corrupt, b"\x89PNG\r\n\x1a\n but not an image").unwrap();
+    assert_bad_input(
+        &["--image", corrupt.to_str().unwrap()],
+        "corrupt.png",
+        "cannot decode",
+    );
+    let tiny = dir.join("tiny.png");
+    // A valid 1×1 gray PNG.
+    let one: &[u8] = &[
+        0x89, 0x50, 0x4e, 0x47, 0x0d, 0x0a, 0x1a, 0x0a, 0x00, 0x00, 0x00, 0x0d, 0x49, 0x48, 0x44,
+        0x52, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00, 0x00, 0x01, 0x08, 0x00, 0x00, 0x00, 0x00, 0x3a,
+        0x7e, 0x9b, 0x55, 0x00, 0x00, 0x00, 0x0a, 0x49, 0x44, 0x41, 0x54, 0x78, 0x9c, 0x63, 0x60,
+        0x00, 0x00, 0x00, 0x02, 0x00, 0x01, 0x48, 0xaf, 0xa4, 0x71, 0x00, 0x00, 0x00, 0x00, 0x49,
+        0x45, 0x4e, 0x44, 0xae, 0x42, 0x60, 0x82,
+    ];
+    std::fs::write(&tiny, one).unwrap();
+    assert_bad_input(&["--image", tiny.to_str().unwrap()], "tiny.png", "1×1");
+    assert_bad_input(&["--image", horse, "--sigma", "0"], "--sigma", "finite");
+    assert_bad_input(&["--image", horse, "--sigma", "-2"], "--sigma", "finite");
+    assert_bad_input(
+        &["--image", horse, "--part", "900,10,950,10,925,0,925,20"],
+        "--part 1",
+        "outside the image",
+    );
+    assert_bad_input(
+        &["--image", horse, "--part", "1,2,3"],
+        "--part",
+        "8 finite numbers",
+    );
+}
+
+#[test]
+fn fits_parts_to_an_image_and_writes_the_overlay() {
+    let dir = scratch();
+    let horse = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/data/horse.png");
+    let overlay = dir.join("overlay.png");
+    let mesh = dir.join("parts.obj");
+    let out = run(&[
+        "--image",
+        horse,
+        "--k",
+        "12",
+        "--max-steps",
+        "300",
+        "--out-overlay",
+        overlay.to_str().unwrap(),
+        "--out-mesh",
+        mesh.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let lines: Vec<serde_json::Value> = stdout
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("JSON line"))
+        .collect();
+    // One automatically placed part (the horse is one blob), then the image summary.
+    assert_eq!(lines.len(), 2, "{stdout}");
+    assert_eq!(lines[0]["part"], 1);
+    let summary = &lines[1];
+    assert!(
+        summary["outline_after"].as_f64().unwrap() > summary["outline_before"].as_f64().unwrap(),
+        "{summary}"
+    );
+    let (w, h, _) = bevy_deformable_sq::io::load_luminance(&overlay).unwrap();
+    assert_eq!((w, h), (400, 328));
+    let obj = std::fs::read_to_string(&mesh).unwrap();
+    assert_eq!(obj.lines().filter(|l| l.starts_with("v ")).count(), 146);
+}

@@ -3,14 +3,16 @@
 //! Deformable Superquadrics*, IEEE PAMI 13(7), 1991.
 //!
 //! Read top to bottom: [`superquadric`] (s, J) → [`frame`] (R, B) → [`fem`] (tessellation,
-//! element stiffness, K q) → [`dynamics`] (f_q, C, the Euler step) → [`forces`] (range springs) →
-//! [`init`] (moments) → [`fit`] (the loop to equilibrium).
+//! element stiffness, K q) → [`dynamics`] (f_q, C, the Euler step) → [`forces`] (range springs, image
+//! potentials) → [`init`] (moments) → [`fit`] (the loop to equilibrium for range data) →
+//! [`image_fit`] (parts fitted to an image).
 
 pub mod dynamics;
 pub mod fem;
 pub mod fit;
 pub mod forces;
 pub mod frame;
+pub mod image_fit;
 pub mod init;
 pub mod linalg;
 pub mod superquadric;

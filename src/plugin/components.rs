@@ -176,6 +176,11 @@ pub struct ModelSettings {
     pub hold_local_steps: u64,
     /// Freeze ε1 and ε2 (the paper's image experiments).
     pub fix_epsilon: bool,
+    /// Image-plane motion only, with the depth ratio a2 held (see
+    /// [`FreeDofs::planar`](crate::model::dynamics::FreeDofs::planar)): for parts fitted to an
+    /// image.
+    #[cfg_attr(feature = "serialize", serde(default))]
+    pub planar: bool,
 }
 
 impl Default for ModelSettings {
@@ -200,6 +205,7 @@ impl ModelSettings {
             global_only: !d.free.local,
             hold_local_steps: 0,
             fix_epsilon: !(d.free.shape[4] || d.free.shape[5]),
+            planar: d.free.planar,
         }
     }
 
@@ -213,6 +219,7 @@ impl ModelSettings {
     /// The core's dynamics parameters.
     pub fn dynamics(&self) -> DynamicsParams {
         let mut shape = [true; 6];
+        shape[2] = !self.planar;
         if self.fix_epsilon {
             shape[4] = false;
             shape[5] = false;
@@ -226,6 +233,7 @@ impl ModelSettings {
             free: FreeDofs {
                 shape,
                 local: !self.global_only,
+                planar: self.planar,
                 ..FreeDofs::default()
             },
             ..DynamicsParams::default()
@@ -251,6 +259,34 @@ pub struct SimControl {
     pub error: Option<String>,
     /// Sub-steps the last step took for stability (1 when within the bound).
     pub last_substeps: u32,
+}
+
+/// An image pulling on a model (eqs. 20–23): the potential (shared by every part fitted to the
+/// same image, through its `Arc`), β, the band and the beyond-the-paper options of
+/// [`ImageForces`](crate::model::forces::image::ImageForces). Pair it with
+/// [`ModelSettings::planar`] and `fix_epsilon`, as the image experiments do.
+#[derive(Component, Clone, Debug)]
+pub struct ImageData {
+    /// The forces, applied at the gather stage.
+    pub forces: crate::model::forces::image::ImageForces,
+}
+
+impl ImageData {
+    /// Image forces of `potential` with the default β, band and outline-only pull.
+    pub fn new(potential: std::sync::Arc<crate::model::forces::image::ImagePotential>) -> Self {
+        Self {
+            forces: crate::model::forces::image::ImageForces::new(potential),
+        }
+    }
+
+    /// The image settings of an image fit.
+    pub fn with_options(mut self, opts: &crate::model::image_fit::ImageFitOptions) -> Self {
+        self.forces.beta = opts.beta;
+        self.forces.band = opts.band;
+        self.forces.outline_only = opts.outline_only;
+        self.forces.region = opts.region;
+        self
+    }
 }
 
 /// Range data attached to a model: points in world space pulling on their points of influence

@@ -152,8 +152,8 @@ pub fn reassign(
     );
 }
 
-/// Stage `GatherForces`: range springs (eq. 22) with their migration, and user springs, spread
-/// to the nodes.
+/// Stage `GatherForces`: range springs (eq. 22) with their migration, image forces (eq. 23), and
+/// user springs, spread to the nodes.
 pub fn gather_forces(
     mut models: Query<(
         &FemMesh,
@@ -163,11 +163,12 @@ pub fn gather_forces(
         &SimControl,
         &mut Scratch,
         Option<&mut RangeData>,
+        Option<&ImageData>,
         Option<&SpringForces>,
     )>,
 ) {
     models.par_iter_mut().for_each(
-        |(fem, rigid, shape, local, control, mut scratch, range, springs)| {
+        |(fem, rigid, shape, local, control, mut scratch, range, image, springs)| {
             let Some(tess) = fem.get() else { return };
             if !stepping(control) {
                 return;
@@ -178,6 +179,11 @@ pub fn gather_forces(
             if let Some(mut range) = range {
                 range.forces.migrate(tess, &scratch.node_x);
                 range
+                    .forces
+                    .accumulate(tess, &scratch.node_x, &mut scratch.forces);
+            }
+            if let Some(image) = image {
+                image
                     .forces
                     .accumulate(tess, &scratch.node_x, &mut scratch.forces);
             }

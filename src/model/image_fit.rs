@@ -1,0 +1,713 @@
+//! Fitting parts to a 2D image (section VI-A): placing them, running them to rest under the image
+//! forces of [`crate::model::forces::image`], and measuring how well their outlines sit on the
+//! image's edges.
+//!
+//! **Placing a part.** The paper places each part from four points picked with the mouse: the
+//! centre and the ends of two axes. [`PartAxes::from_points`] takes both ends of the major axis
+//! and both ends of the minor axis (in pixels): the centre is their mean, the semi-axes half
+//! their lengths. [`segment`] places parts with no user at all, as the paper proposes: the
+//! luminance is thresholded (Otsu), split into 4-connected blobs, and each blob's central
+//! moments give a centre and two semi-axes (2√λ of the covariance, exact for a filled ellipse).
+//!
+//! A part's long axis becomes the superquadric's polar (z) axis, so its latitude rings cut across
+//! it; its depth (the world z extent) is taken equal to the minor semi-axis, as for a body of
+//! revolution; ε1 = ε2 = 1.
+//!
+//! **The loop.** Each part runs on its own (parts do not interact): global DOFs until rest, then
+//! global and local together until rest, or `max_steps` in all. Rest is a step that moves no node
+//! by more than `tolerance` × the image's extent.
+//!
+//! **Measures.** [`outline_potential`] is the mean of P / P_ref along the projected outline of the
+//! parts (the edges between triangles that face the camera and triangles that face away): 1 on a
+//! typical strong edge, near 0 in flat regions. [`silhouette_iou`] compares the union of the parts'
+//! projected silhouettes with the thresholded foreground.
+
+use super::dynamics::{
+    DynamicsParams, FreeDofs, ModelState, NodalForces, StepError, Workspace, step,
+};
+use super::fem::Tessellation;
+use super::fit::max_motion;
+use super::forces::image::{
+    DEFAULT_BAND, DEFAULT_IMAGE_BETA, ImageForces, ImagePotential, for_each_outline_edge,
+};
+use super::superquadric::SuperquadricParams;
+use bevy::math::{DMat3, DQuat, DVec2, DVec3};
+use std::sync::Arc;
+
+/// A part's placement in the image plane: centre, major semi-axis (a vector) and minor semi-axis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PartAxes {
+    /// Centre in plane coordinates.
+    pub center: DVec2,
+    /// Major semi-axis as a plane vector (direction and length).
+    pub major: DVec2,
+    /// Minor semi-axis length (in the plane, perpendicular to `major`; also the depth).
+    pub minor: f64,
+}
+
+/// Why a part could not be placed.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PlacementError {
+    /// The part's centre is not on the image.
+    OutsideImage {
+        /// Centre in pixels.
+        center: DVec2,
+    },
+    /// An axis has zero or non-finite length.
+    DegenerateAxis,
+}
+
+impl std::fmt::Display for PlacementError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PlacementError::OutsideImage { center } => write!(
+                f,
+                "the part's centre ({:.1}, {:.1}) px is outside the image",
+                center.x, center.y
+            ),
+            PlacementError::DegenerateAxis => {
+                write!(f, "an axis of the part has zero or non-finite length")
+            }
+        }
+    }
+}
+
+impl std::error::Error for PlacementError {}
+
+impl PartAxes {
+    /// From four pixel positions: both ends of the major axis, then both ends of the minor axis.
+    pub fn from_points(
+        potential: &ImagePotential,
+        pixels: [DVec2; 4],
+    ) -> Result<Self, PlacementError> {
+        if !pixels.iter().all(|p| p.is_finite()) {
+            return Err(PlacementError::DegenerateAxis);
+        }
+        let center_px = (pixels[0] + pixels[1] + pixels[2] + pixels[3]) / 4.0;
+        let x = pixels.map(|p| potential.to_plane(p));
+        let axes = Self {
+            center: potential.to_plane(center_px),
+            major: (x[1] - x[0]) / 2.0,
+            minor: (x[3] - x[2]).length() / 2.0,
+        };
+        axes.check(potential)
+    }
+
+    /// From a blob's pixel moments.
+    pub fn from_blob(potential: &ImagePotential, blob: &Blob) -> Result<Self, PlacementError> {
+        let [[sxx, sxy], [_, syy]] = blob.covariance;
+        // Eigen-decomposition of the 2×2 covariance (pixels, y down).
+        let mean = 0.5 * (sxx + syy);
+        let d = (0.25 * (sxx - syy).powi(2) + sxy * sxy).sqrt();
+        let (l1, l2) = (mean + d, (mean - d).max(0.0));
+        let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+        let dir_px = DVec2::new(angle.cos(), angle.sin());
+        let c = blob.centroid;
+        let major_end = potential.to_plane(c + dir_px * 2.0 * l1.sqrt());
+        let center = potential.to_plane(c);
+        let axes = Self {
+            center,
+            major: major_end - center,
+            minor: 2.0 * l2.sqrt() * potential.pitch(),
+        };
+        axes.check(potential)
+    }
+
+    fn check(self, potential: &ImagePotential) -> Result<Self, PlacementError> {
+        if !(self.major.is_finite() && self.minor.is_finite() && self.center.is_finite())
+            || self.major.length() <= 0.0
+            || self.minor <= 0.0
+        {
+            return Err(PlacementError::DegenerateAxis);
+        }
+        if !potential.contains(self.center) {
+            return Err(PlacementError::OutsideImage {
+                center: potential.to_pixel(self.center),
+            });
+        }
+        Ok(self)
+    }
+
+    /// The pose and shape this placement gives: the model's z axis along the major axis, its
+    /// x axis along the minor one, its y axis out of the image; ε1 = ε2 = 1.
+    pub fn pose(&self) -> (DVec3, DQuat, SuperquadricParams) {
+        let m = self.major.normalize();
+        let ez = DVec3::new(m.x, m.y, 0.0);
+        let ex = DVec3::new(-m.y, m.x, 0.0);
+        let ey = ez.cross(ex);
+        let rotation = DQuat::from_mat3(&DMat3::from_cols(ex, ey, ez)).normalize();
+        let major = self.major.length();
+        let minor = self.minor.min(major);
+        let shape = SuperquadricParams {
+            a: major,
+            a1: minor / major,
+            a2: minor / major,
+            a3: 1.0,
+            e1: 1.0,
+            e2: 1.0,
+        }
+        .normalized();
+        (self.center.extend(0.0), rotation, shape)
+    }
+
+    /// A model in this placement with zero local displacement.
+    pub fn state(&self, tess: &Tessellation) -> ModelState {
+        let (c, r, s) = self.pose();
+        ModelState::new(tess, c, r, s)
+    }
+}
+
+/// A 4-connected region of foreground pixels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Blob {
+    /// Pixel count.
+    pub area: usize,
+    /// Mean pixel position (column, row).
+    pub centroid: DVec2,
+    /// Covariance of the pixel positions [[σxx, σxy], [σxy, σyy]] (pixels², rows downwards).
+    pub covariance: [[f64; 2]; 2],
+}
+
+/// The foreground's 4-connected blobs of at least `min_area` pixels, largest first.
+pub fn segment(potential: &ImagePotential, min_area: usize) -> Vec<Blob> {
+    let (w, h) = (potential.width(), potential.height());
+    let mask = potential.foreground();
+    let mut seen = vec![false; w * h];
+    let mut blobs = Vec::new();
+    let mut stack = Vec::new();
+    for start in 0..w * h {
+        if !mask[start] || seen[start] {
+            continue;
+        }
+        seen[start] = true;
+        stack.push(start);
+        let (mut n, mut s, mut ss) = (0usize, DVec2::ZERO, [0.0f64; 3]);
+        while let Some(i) = stack.pop() {
+            let (c, r) = (i % w, i / w);
+            let p = DVec2::new(c as f64, r as f64);
+            n += 1;
+            s += p;
+            ss[0] += p.x * p.x;
+            ss[1] += p.x * p.y;
+            ss[2] += p.y * p.y;
+            let mut visit = |j: usize| {
+                if mask[j] && !seen[j] {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            };
+            if c > 0 {
+                visit(i - 1);
+            }
+            if c + 1 < w {
+                visit(i + 1);
+            }
+            if r > 0 {
+                visit(i - w);
+            }
+            if r + 1 < h {
+                visit(i + w);
+            }
+        }
+        if n >= min_area.max(1) {
+            let m = s / n as f64;
+            let nf = n as f64;
+            // Pixels are unit squares: add their own variance 1/12 per axis.
+            let sxx = ss[0] / nf - m.x * m.x + 1.0 / 12.0;
+            let sxy = ss[1] / nf - m.x * m.y;
+            let syy = ss[2] / nf - m.y * m.y + 1.0 / 12.0;
+            blobs.push(Blob {
+                area: n,
+                centroid: m,
+                covariance: [[sxx, sxy], [sxy, syy]],
+            });
+        }
+    }
+    blobs.sort_by_key(|b| std::cmp::Reverse(b.area));
+    blobs
+}
+
+/// Settings of [`fit_image`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ImageFitOptions {
+    /// Latitude rings and longitudes of each part (k² + 2 nodes).
+    pub k: usize,
+    /// Dynamics (w0, w1, Δt, damping); `free` is set per stage.
+    pub dynamics: DynamicsParams,
+    /// Force strength β.
+    pub beta: f64,
+    /// Band half-width on |x3|.
+    pub band: f64,
+    /// Pull only the projected outline (see [`ImageForces::outline_only`]); false: the paper's
+    /// forces on every node in the band.
+    pub outline_only: bool,
+    /// Region (balloon) force fraction (see [`ImageForces::region`]); 0: the paper's forces.
+    pub region: f64,
+    /// Move only in the image plane (see [`FreeDofs::planar`]) and hold the depth ratio a2:
+    /// what one image cannot observe stays as placed.
+    pub planar: bool,
+    /// Hold ε1 = ε2 fixed (the paper does for the pestle and the doll).
+    pub fix_epsilon: bool,
+    /// Run the global DOFs to rest before freeing the local ones.
+    pub global_first: bool,
+    /// Rest: no node moves more than this × the image extent in a step.
+    pub tolerance: f64,
+    /// Step cap per part.
+    pub max_steps: usize,
+}
+
+impl Default for ImageFitOptions {
+    /// The doll experiment: k = 31 (963 nodes), w0 = 1e-3, w1 = 0.1, ε fixed, band 0.2.
+    fn default() -> Self {
+        Self {
+            k: 31,
+            dynamics: DynamicsParams::default(),
+            beta: DEFAULT_IMAGE_BETA,
+            band: DEFAULT_BAND,
+            outline_only: true,
+            region: 0.0,
+            planar: true,
+            fix_epsilon: true,
+            global_first: true,
+            tolerance: 1e-5,
+            max_steps: 3000,
+        }
+    }
+}
+
+impl ImageFitOptions {
+    /// The pestle experiment: k = 71 (5043 nodes), w0 = 1e-6, w1 = 4e-2.
+    pub fn pestle() -> Self {
+        let mut o = Self {
+            k: 71,
+            ..Self::default()
+        };
+        o.dynamics.w0 = 1e-6;
+        o.dynamics.w1 = 4e-2;
+        o
+    }
+}
+
+/// One of the paper's image experiments (section VI-A) rebuilt on a shipped stand-in image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImageExperiment {
+    /// The image, relative to the crate's root directory.
+    pub image: &'static str,
+    /// Gaussian width σ in pixels.
+    pub sigma: f64,
+    /// Each part's four points in pixels (see [`PartAxes::from_points`]), named.
+    pub parts: Vec<(&'static str, [DVec2; 4])>,
+    /// The fit's settings.
+    pub options: ImageFitOptions,
+}
+
+fn px(p: [f64; 8]) -> [DVec2; 4] {
+    [0, 2, 4, 6].map(|i| DVec2::new(p[i], p[i + 1]))
+}
+
+/// The pestle experiment on `assets/data/rocket.png` (640×427): one part, 5043 nodes (k = 71),
+/// w0 = 1e-6, w1 = 4e-2, ε1 = ε2 = 1 fixed, placed from four points on the rocket's body. β =
+/// 2e-5 (the paper's 4e-6 was for 0–255 intensities and pixel units; with [0, 1] intensities and
+/// unit-plane lengths a larger β crumples this 5043-node membrane on the rocket's markings).
+pub fn pestle_experiment() -> ImageExperiment {
+    let mut options = ImageFitOptions::pestle();
+    options.beta = 2e-5;
+    ImageExperiment {
+        image: "assets/data/rocket.png",
+        sigma: 2.0,
+        parts: vec![("body", px([322., 130., 322., 400., 308., 265., 336., 265.]))],
+        options,
+    }
+}
+
+/// The doll experiment's 11 parts: name, then both ends of the major axis and both ends of the
+/// minor axis in pixels of `horse.png`.
+const DOLL_PARTS: [(&str, [i16; 8]); 11] = [
+    ("body", [65, 130, 300, 140, 180, 88, 180, 192]),
+    ("head", [335, 40, 385, 95, 348, 78, 372, 57]),
+    ("neck", [285, 125, 335, 45, 290, 70, 330, 100]),
+    ("tail", [50, 100, 30, 245, 25, 170, 55, 170]),
+    ("haunch", [60, 160, 130, 200, 100, 150, 90, 215]),
+    ("forearm 1", [255, 180, 250, 250, 240, 215, 265, 215]),
+    ("forearm 2", [282, 180, 272, 250, 262, 215, 287, 215]),
+    ("fore shin 1", [250, 250, 255, 305, 245, 278, 260, 278]),
+    ("fore shin 2", [272, 250, 282, 305, 268, 278, 285, 278]),
+    ("hind shin 1", [62, 220, 58, 300, 52, 260, 68, 260]),
+    ("hind shin 2", [110, 215, 122, 295, 108, 255, 124, 255]),
+];
+
+/// The doll experiment on `assets/data/horse.png` (400×328): 11 parts of 963 nodes (k = 31),
+/// w0 = 1e-3, w1 = 0.1, ε fixed, each placed crudely from four points as in the paper's
+/// Fig. 6(a). With a region force of 0.05 (see [`ImageForces::region`]): the horse's limbs are
+/// single-edged where they join the body, and edge forces alone flatten those parts onto it.
+pub fn doll_experiment() -> ImageExperiment {
+    ImageExperiment {
+        image: "assets/data/horse.png",
+        sigma: 2.0,
+        parts: DOLL_PARTS
+            .iter()
+            .map(|(n, p)| (*n, px(p.map(f64::from))))
+            .collect(),
+        options: ImageFitOptions {
+            region: 0.05,
+            ..ImageFitOptions::default()
+        },
+    }
+}
+
+/// One part's fit.
+#[derive(Clone, Debug)]
+pub struct ImagePartFit {
+    /// The state at rest (or at the step cap).
+    pub state: ModelState,
+    /// Steps taken in all.
+    pub steps: usize,
+    /// Steps with the local DOFs held.
+    pub global_steps: usize,
+    /// True when every stage ended at rest.
+    pub converged: bool,
+    /// [`outline_potential`] of this part before and after.
+    pub outline_before: f64,
+    /// [`outline_potential`] after the fit.
+    pub outline_after: f64,
+}
+
+/// Runs one part from `initial` to rest under `forces`.
+pub fn fit_part(
+    tess: &Tessellation,
+    forces: &ImageForces,
+    initial: ModelState,
+    opts: &ImageFitOptions,
+) -> Result<ImagePartFit, StepError> {
+    let mut state = initial;
+    let mut x = Vec::new();
+    state.node_positions(tess, &mut x);
+    let outline_before = outline_potential(&forces.potential, &[(tess, &x)]);
+    let mut ws = Workspace::default();
+    let mut nf = NodalForces::new(tess.node_count());
+    let mut x_new = Vec::new();
+    let stages: &[bool] = if opts.global_first {
+        &[false, true]
+    } else {
+        &[true]
+    };
+    let rest = opts.tolerance * forces.potential.frame().extent;
+    let (mut steps, mut global_steps, mut converged) = (0, 0, true);
+    for &local in stages {
+        let mut params = opts.dynamics;
+        params.free = FreeDofs {
+            local,
+            planar: opts.planar,
+            ..FreeDofs::default()
+        };
+        if opts.planar {
+            // The depth semi-axis a·a2 (the model's y axis lies along world z) is not observed.
+            params.free.shape[2] = false;
+        }
+        if opts.fix_epsilon {
+            params.free.shape[4] = false;
+            params.free.shape[5] = false;
+        }
+        let mut at_rest = false;
+        while steps < opts.max_steps {
+            nf.clear(tess.node_count());
+            forces.accumulate(tess, &x, &mut nf);
+            step(tess, &mut state, &nf, &params, &mut ws)?;
+            steps += 1;
+            global_steps += !local as usize;
+            state.node_positions(tess, &mut x_new);
+            let motion = max_motion(&x, &x_new);
+            std::mem::swap(&mut x, &mut x_new);
+            if motion < rest {
+                at_rest = true;
+                break;
+            }
+        }
+        converged &= at_rest;
+    }
+    let outline_after = outline_potential(&forces.potential, &[(tess, &x)]);
+    Ok(ImagePartFit {
+        state,
+        steps,
+        global_steps,
+        converged,
+        outline_before,
+        outline_after,
+    })
+}
+
+/// Fits every part in `initial` to the image (each on its own, in parallel over parts).
+pub fn fit_image(
+    potential: Arc<ImagePotential>,
+    initial: &[PartAxes],
+    opts: &ImageFitOptions,
+) -> Result<Vec<ImagePartFit>, StepError> {
+    let tess = Tessellation::new(opts.k);
+    let forces = ImageForces {
+        potential,
+        beta: opts.beta,
+        band: opts.band,
+        outline_only: opts.outline_only,
+        region: opts.region,
+    };
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = initial
+            .iter()
+            .map(|axes| {
+                let (tess, forces) = (&tess, &forces);
+                scope.spawn(move || fit_part(tess, forces, axes.state(tess), opts))
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().expect("image fit thread panicked"))
+            .collect()
+    })
+}
+
+/// The projected outline of a model (see [`for_each_outline_edge`]) as plane segments.
+pub fn outline_segments(tess: &Tessellation, x: &[DVec3]) -> Vec<[DVec2; 2]> {
+    let mut out = Vec::new();
+    for_each_outline_edge(tess, x, |a, b| {
+        out.push([x[a as usize].truncate(), x[b as usize].truncate()])
+    });
+    out
+}
+
+/// Pairs each part's node positions with their shared tessellation, as the measures take them.
+pub fn parts_on<'a>(
+    tess: &'a Tessellation,
+    xs: &'a [Vec<DVec3>],
+) -> Vec<(&'a Tessellation, &'a [DVec3])> {
+    xs.iter().map(|x| (tess, x.as_slice())).collect()
+}
+
+/// Mean of P / P_ref along the projected outlines of `parts` (each a tessellation and its node
+/// world positions), weighted by length; 0 when there is no outline or the image is flat.
+pub fn outline_potential(potential: &ImagePotential, parts: &[(&Tessellation, &[DVec3])]) -> f64 {
+    let (mut sum, mut len) = (0.0, 0.0);
+    for (tess, x) in parts {
+        for [a, b] in outline_segments(tess, x) {
+            let l = (b - a).length();
+            // Sample each segment at a pixel's spacing (at least its midpoint).
+            let n = ((l / potential.pitch()).ceil() as usize).max(1);
+            for s in 0..n {
+                let p = a + (b - a) * ((s as f64 + 0.5) / n as f64);
+                sum += potential.potential_at(p) * l / n as f64;
+            }
+            len += l;
+        }
+    }
+    if len > 0.0 && potential.p_ref() > 0.0 {
+        sum / len / potential.p_ref()
+    } else {
+        0.0
+    }
+}
+
+/// The pixels (row-major) whose centres lie inside the projection of any of `parts`.
+pub fn silhouette_mask(
+    potential: &ImagePotential,
+    parts: &[(&Tessellation, &[DVec3])],
+) -> Vec<bool> {
+    let (w, h) = (potential.width(), potential.height());
+    let mut mask = vec![false; w * h];
+    for (tess, x) in parts {
+        for t in tess.triangles() {
+            let v = t.map(|i| potential.to_pixel(x[i as usize].truncate()));
+            let lo = v[0].min(v[1]).min(v[2]).ceil().max(DVec2::ZERO);
+            let hi = v[0].max(v[1]).max(v[2]).floor();
+            let area = (v[1] - v[0]).perp_dot(v[2] - v[0]);
+            if area == 0.0 || !area.is_finite() {
+                continue;
+            }
+            let (c1, r1) = (
+                (hi.x.min((w - 1) as f64)) as isize,
+                (hi.y.min((h - 1) as f64)) as isize,
+            );
+            for r in lo.y as isize..=r1 {
+                for c in lo.x as isize..=c1 {
+                    let p = DVec2::new(c as f64, r as f64);
+                    let s0 = (v[1] - v[0]).perp_dot(p - v[0]) / area;
+                    let s1 = (v[2] - v[1]).perp_dot(p - v[1]) / area;
+                    let s2 = (v[0] - v[2]).perp_dot(p - v[2]) / area;
+                    if s0 >= 0.0 && s1 >= 0.0 && s2 >= 0.0 {
+                        mask[r as usize * w + c as usize] = true;
+                    }
+                }
+            }
+        }
+    }
+    mask
+}
+
+/// Intersection over union of two masks (1 when both are empty).
+pub fn iou(a: &[bool], b: &[bool]) -> f64 {
+    let (mut inter, mut union) = (0usize, 0usize);
+    for (x, y) in a.iter().zip(b) {
+        inter += (*x && *y) as usize;
+        union += (*x || *y) as usize;
+    }
+    if union == 0 {
+        1.0
+    } else {
+        inter as f64 / union as f64
+    }
+}
+
+/// IoU of the union of the parts' silhouettes with the image's thresholded foreground.
+pub fn silhouette_iou(potential: &ImagePotential, parts: &[(&Tessellation, &[DVec3])]) -> f64 {
+    iou(&silhouette_mask(potential, parts), potential.foreground())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::forces::image::ImageFrame;
+
+    /// A dark filled ellipse on a white background.
+    fn ellipse_image(w: usize, h: usize, c: DVec2, a: f64, b: f64, angle: f64) -> Vec<f64> {
+        let (s, co) = angle.sin_cos();
+        (0..w * h)
+            .map(|i| {
+                let d = DVec2::new((i % w) as f64, (i / w) as f64) - c;
+                let (u, v) = (co * d.x + s * d.y, -s * d.x + co * d.y);
+                if (u / a).powi(2) + (v / b).powi(2) <= 1.0 {
+                    0.1
+                } else {
+                    0.9
+                }
+            })
+            .collect()
+    }
+
+    fn potential(lum: Vec<f64>, w: usize, h: usize) -> Arc<ImagePotential> {
+        Arc::new(ImagePotential::new(w, h, lum, 2.0, ImageFrame::default()).unwrap())
+    }
+
+    #[test]
+    fn blobs_of_a_dark_ellipse_give_its_centre_and_axes() {
+        let (w, h) = (200, 160);
+        let c = DVec2::new(90.0, 70.0);
+        let lum = ellipse_image(w, h, c, 60.0, 25.0, 0.5);
+        let pot = potential(lum, w, h);
+        let blobs = segment(&pot, 20);
+        assert_eq!(blobs.len(), 1);
+        let axes = PartAxes::from_blob(&pot, &blobs[0]).unwrap();
+        assert!((pot.to_pixel(axes.center) - c).length() < 0.5);
+        let major_px = axes.major.length() / pot.pitch();
+        assert!((major_px - 60.0).abs() < 1.0, "{major_px}");
+        assert!((axes.minor / pot.pitch() - 25.0).abs() < 1.0);
+        // Rows grow downwards, so a positive image angle is clockwise in the plane.
+        let angle = axes.major.y.atan2(axes.major.x);
+        let expected = -0.5;
+        let diff = (angle - expected).rem_euclid(std::f64::consts::PI);
+        assert!(diff.min(std::f64::consts::PI - diff) < 0.02, "{angle}");
+    }
+
+    #[test]
+    fn four_points_place_a_part_and_outside_points_are_refused() {
+        let (w, h) = (100, 80);
+        let pot = potential(vec![0.5; w * h], w, h);
+        let px = [
+            DVec2::new(20.0, 40.0),
+            DVec2::new(80.0, 40.0),
+            DVec2::new(50.0, 30.0),
+            DVec2::new(50.0, 50.0),
+        ];
+        let axes = PartAxes::from_points(&pot, px).unwrap();
+        assert!((pot.to_pixel(axes.center) - DVec2::new(50.0, 40.0)).length() < 1e-9);
+        assert!((axes.major.length() - 0.3).abs() < 1e-12);
+        assert!((axes.minor - 0.1).abs() < 1e-12);
+        let (c, r, s) = axes.pose();
+        // The model's z axis lies along the major axis; its semi-axes are 0.3 and 0.1.
+        assert!(
+            (r * DVec3::Z - DVec3::X).length() < 1e-12
+                || (r * DVec3::Z + DVec3::X).length() < 1e-12
+        );
+        assert!((s.a * s.a3 - 0.3).abs() < 1e-12 && (s.a * s.a1 - 0.1).abs() < 1e-12);
+        assert_eq!(c.z, 0.0);
+        let outside = px.map(|p| p + DVec2::new(500.0, 0.0));
+        assert!(matches!(
+            PartAxes::from_points(&pot, outside),
+            Err(PlacementError::OutsideImage { .. })
+        ));
+        let flat = [px[0], px[0], px[2], px[3]];
+        assert_eq!(
+            PartAxes::from_points(&pot, flat),
+            Err(PlacementError::DegenerateAxis)
+        );
+    }
+
+    #[test]
+    fn outline_of_a_sphere_is_its_equator_and_its_silhouette_is_a_disc() {
+        let (w, h) = (100, 100);
+        let pot = potential(vec![0.5; w * h], w, h);
+        // Odd k puts a ring on the equator, which is then the outline seen along z.
+        let tess = Tessellation::new(15);
+        let state = ModelState::new(
+            &tess,
+            DVec3::ZERO,
+            DQuat::IDENTITY,
+            SuperquadricParams {
+                a: 0.25,
+                ..Default::default()
+            },
+        );
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        let segs = outline_segments(&tess, &x);
+        assert_eq!(segs.len(), 15);
+        for [a, b] in &segs {
+            assert!((a.length() - 0.25).abs() < 1e-9 && (b.length() - 0.25).abs() < 1e-9);
+        }
+        let mask = silhouette_mask(&pot, &[(&tess, &x)]);
+        let area = mask.iter().filter(|&&m| m).count() as f64;
+        // A 15-gon of circumradius 25 px: area (15/2) r² sin(2π/15) ≈ 1907 px².
+        let expected = 7.5 * 625.0 * (2.0 * std::f64::consts::PI / 15.0).sin();
+        assert!(
+            (area - expected).abs() < 0.03 * expected,
+            "{area} vs {expected}"
+        );
+    }
+
+    #[test]
+    fn a_part_fitted_to_an_ellipse_image_puts_its_outline_on_the_edge() {
+        let (w, h) = (160, 160);
+        let c = DVec2::new(80.0, 80.0);
+        let lum = ellipse_image(w, h, c, 50.0, 22.0, 0.3);
+        let pot = potential(lum, w, h);
+        // A crude start: centre off by 6 px, axes 20 % off, rotated by 0.2 rad.
+        let start = PartAxes {
+            center: pot.to_plane(c + DVec2::new(6.0, -4.0)),
+            major: DVec2::from_angle(-0.1) * 40.0 * pot.pitch(),
+            minor: 26.0 * pot.pitch(),
+        };
+        let opts = ImageFitOptions {
+            k: 16,
+            ..Default::default()
+        };
+        let fits = fit_image(pot.clone(), &[start], &opts).unwrap();
+        let f = &fits[0];
+        assert!(f.state.is_finite());
+        assert!(
+            f.outline_after > 0.8 && f.outline_after > f.outline_before + 0.2,
+            "outline P/P_ref {} -> {}",
+            f.outline_before,
+            f.outline_after
+        );
+        let tess = Tessellation::new(16);
+        let mut x0 = Vec::new();
+        start.state(&tess).node_positions(&tess, &mut x0);
+        let mut x1 = Vec::new();
+        f.state.node_positions(&tess, &mut x1);
+        let (before, after) = (
+            silhouette_iou(&pot, &[(&tess, &x0)]),
+            silhouette_iou(&pot, &[(&tess, &x1)]),
+        );
+        assert!(
+            after > 0.9 && after > before + 0.1,
+            "IoU {before} -> {after}"
+        );
+    }
+}
