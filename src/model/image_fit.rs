@@ -276,6 +276,17 @@ impl Default for ImageFitOptions {
 }
 
 impl ImageFitOptions {
+    /// The image forces these options apply with `potential`.
+    pub fn forces(&self, potential: Arc<ImagePotential>) -> ImageForces {
+        ImageForces {
+            potential,
+            beta: self.beta,
+            band: self.band,
+            outline_only: self.outline_only,
+            region: self.region,
+        }
+    }
+
     /// The pestle experiment: k = 71 (5043 nodes), w0 = 1e-6, w1 = 4e-2.
     pub fn pestle() -> Self {
         let mut o = Self {
@@ -443,13 +454,7 @@ pub fn fit_image(
     opts: &ImageFitOptions,
 ) -> Result<Vec<ImagePartFit>, StepError> {
     let tess = Tessellation::new(opts.k);
-    let forces = ImageForces {
-        potential,
-        beta: opts.beta,
-        band: opts.band,
-        outline_only: opts.outline_only,
-        region: opts.region,
-    };
+    let forces = opts.forces(potential);
     std::thread::scope(|scope| {
         let handles: Vec<_> = initial
             .iter()

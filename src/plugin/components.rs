@@ -280,12 +280,10 @@ impl ImageData {
     }
 
     /// The image settings of an image fit.
-    pub fn with_options(mut self, opts: &crate::model::image_fit::ImageFitOptions) -> Self {
-        self.forces.beta = opts.beta;
-        self.forces.band = opts.band;
-        self.forces.outline_only = opts.outline_only;
-        self.forces.region = opts.region;
-        self
+    pub fn with_options(self, opts: &crate::model::image_fit::ImageFitOptions) -> Self {
+        Self {
+            forces: opts.forces(self.forces.potential),
+        }
     }
 }
 
