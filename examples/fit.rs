@@ -1,12 +1,13 @@
 //! Command-line fitter: fits a deformable superquadric to a point cloud.
 //!
 //! ```text
-//! cargo run --release --example fit -- (POINTS | --image IMAGE | --paper egg|mug|pestle|doll)
+//! cargo run --release --example fit -- (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll)
 //!     [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] [--max-steps N] [--out-mesh FILE.obj]
 //!     [--out-params FILE.json] [--quiet]
 //!     points only: [--global-only] [--migrate] [--reassign N] [--app]
 //!     images only: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth]
 //!                  [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]
+//!     scenes only: [--out-scene FILE.dsq.ron]
 //! ```
 //!
 //! POINTS is an OBJ (vertices are the points) or PLY file; `--paper egg` / `--paper mug` runs the
@@ -15,7 +16,10 @@
 //! override them). IMAGE is a PNG or JPEG; each `--part` places one part from four pixel points
 //! (both ends of the major axis, then both ends of the minor axis); without `--part` the `--parts`
 //! largest blobs of the thresholded image are fitted (default 1). `--out-overlay` draws the fitted
-//! outlines over the image. Image fits print one JSON line per part, then one for the image
+//! outlines over the image. `--scene` runs every part of a scene file (see
+//! `bevy_deformable_sq::scene`) to rest with the scene's settings (`--max-steps` caps each part),
+//! printing one line per part; `--out-scene` writes the scene back with the fitted states.
+//! Image fits print one JSON line per part, then one for the image
 //! (`outline_*`: mean P/P_ref along the projected outlines; `iou_*`: silhouettes vs foreground). `--app` runs the same fit through `DeformableSqPlugin` in a headless Bevy app
 //! (every initial hypothesis an entity, simulated in parallel); the result is the same. Progress goes to stderr; the last line
 //! on stdout is a one-line JSON summary. Bad input exits with code 2 and a one-line message.
@@ -26,29 +30,34 @@ use bevy_deformable_sq::io::{
 };
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
+use bevy_deformable_sq::model::fit::FitReport;
 use bevy_deformable_sq::model::fit::{FitOptions, Stage, fit};
 use bevy_deformable_sq::model::forces::image::{DEFAULT_SIGMA, ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::forces::range::InfluenceMode;
+use bevy_deformable_sq::model::image_fit::ImagePartFit;
 use bevy_deformable_sq::model::image_fit::{
     ImageFitOptions, PartAxes, doll_experiment, fit_image, outline_potential, outline_segments,
     parts_on, pestle_experiment, segment, silhouette_iou,
 };
 use bevy_deformable_sq::plugin::headless::fit_headless;
+use bevy_deformable_sq::scene::{PartRun, SceneDef, run_scene};
 use bevy_deformable_sq::synthetic;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
+use std::time::Duration;
 use std::time::Instant;
 
-const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] \
+const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] \
 [--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--migrate] [--reassign N] [--app]; \
-images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]";
+images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]; scenes: [--out-scene FILE.dsq.ron]";
 
 /// Where the data come from.
 enum Source {
     File(PathBuf),
     Paper(&'static str),
     Image(PathBuf),
+    Scene(PathBuf),
 }
 
 struct Args {
@@ -59,6 +68,8 @@ struct Args {
     out_params: Option<PathBuf>,
     quiet: bool,
     app: bool,
+    out_scene: Option<PathBuf>,
+    max_steps_override: Option<u32>,
 }
 
 fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
@@ -68,6 +79,9 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
     let mut o = FitOptions::default();
     let mut image = ImageArgs::default();
     let mut image_path = None;
+    let mut scene_path = None;
+    let mut max_steps_override = None;
+    let mut out_scene = None;
     let (mut out_mesh, mut out_params, mut quiet, mut app) = (None, None, false, false);
     fn value<T: std::str::FromStr>(flag: &str, v: Option<String>) -> Result<T, String> {
         let v = v.ok_or_else(|| format!("{flag} needs a value"))?;
@@ -114,6 +128,14 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
                 o.beta = finite(&a, value(&a, args.next())?, f64::MIN_POSITIVE)?;
                 image.options.beta = o.beta;
             }
+            "--scene" => {
+                scene_path = Some(PathBuf::from(args.next().ok_or("--scene needs a file")?))
+            }
+            "--out-scene" => {
+                out_scene = Some(PathBuf::from(
+                    args.next().ok_or("--out-scene needs a file")?,
+                ))
+            }
             "--image" => {
                 image_path = Some(PathBuf::from(args.next().ok_or("--image needs a file")?))
             }
@@ -151,6 +173,7 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
             "--reassign" => o.reassign_every = value::<u32>(&a, args.next())?.max(1),
             "--max-steps" => {
                 o.max_steps = value(&a, args.next())?;
+                max_steps_override = Some(o.max_steps);
                 image.options.max_steps = o.max_steps as usize;
             }
             "--paper" => {
@@ -200,13 +223,21 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
             }
         }
     }
-    let (source, paper_points) = match (points, paper, image_path) {
-        (Some(p), None, None) => (Source::File(p), None),
-        (None, Some((name, pts)), None) => (Source::Paper(name), Some(pts)),
-        (None, None, Some(p)) => (Source::Image(p), None),
-        (None, None, None) => return Err(format!("no POINTS file given\n{USAGE}")),
-        _ => return Err(format!("give one of POINTS, --paper or --image\n{USAGE}")),
+    let (source, paper_points) = match (points, paper, image_path, scene_path) {
+        (Some(p), None, None, None) => (Source::File(p), None),
+        (None, Some((name, pts)), None, None) => (Source::Paper(name), Some(pts)),
+        (None, None, Some(p), None) => (Source::Image(p), None),
+        (None, None, None, Some(p)) => (Source::Scene(p), None),
+        (None, None, None, None) => return Err(format!("no POINTS file given\n{USAGE}")),
+        _ => {
+            return Err(format!(
+                "give one of POINTS, --paper, --image or --scene\n{USAGE}"
+            ));
+        }
     };
+    if out_scene.is_some() && !matches!(source, Source::Scene(_)) {
+        return Err(format!("--out-scene needs --scene\n{USAGE}"));
+    }
     let args = Args {
         source,
         options: o,
@@ -215,14 +246,18 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
         quiet,
         app,
         image,
+        out_scene,
+        max_steps_override,
     };
     Ok((args, paper_points))
 }
 
 fn run() -> Result<(), String> {
     let (args, paper_points) = parse_args()?;
-    if let Source::Image(path) = &args.source {
-        return run_image(path, &args);
+    match &args.source {
+        Source::Image(path) => return run_image(path, &args),
+        Source::Scene(path) => return run_scene_file(path, &args),
+        _ => {}
     }
     let (points, name) = match (&args.source, paper_points) {
         (Source::File(path), _) => (
@@ -231,7 +266,7 @@ fn run() -> Result<(), String> {
         ),
         (Source::Paper(name), Some(pts)) => (pts, format!("paper:{name}")),
         (Source::Paper(name), None) => return Err(format!("no data for --paper {name}")),
-        (Source::Image(_), _) => unreachable!("image sources return above"),
+        (Source::Image(_) | Source::Scene(_), _) => unreachable!("returned above"),
     };
     let start = Instant::now();
     let quiet = args.quiet;
@@ -265,25 +300,15 @@ fn run() -> Result<(), String> {
         let json = serde_json::to_string_pretty(&params).map_err(|e| e.to_string())?;
         std::fs::write(path, json).map_err(|e| format!("{}: cannot write: {e}", path.display()))?;
     }
-    let r = report.residuals;
-    let summary = serde_json::json!({
-        "file": name,
-        "steps": report.steps,
-        "global_steps": report.global_steps,
-        "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
-        "steps_per_s": (report.steps as f64 / wall.as_secs_f64().max(1e-9)).round(),
-        "points": points.len(),
-        "nodes": report.tess.node_count(),
-        "global_only": args.options.global_only,
-        "through": if args.app { "plugin" } else { "core" },
-        "converged": report.converged,
-        "mean": r.mean,
-        "rms": r.rms,
-        "p95": r.p95,
-        "max": r.max,
-        "a": params.shape.a, "a1": params.shape.a1, "a2": params.shape.a2, "a3": params.shape.a3,
-        "e1": params.shape.e1, "e2": params.shape.e2,
-    });
+    let through = if args.app { "plugin" } else { "core" };
+    let summary = range_summary(
+        &name,
+        &report,
+        points.len(),
+        wall,
+        through,
+        args.options.global_only,
+    );
     println!("{summary}");
     Ok(())
 }
@@ -374,14 +399,7 @@ fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
     }
     let mut all_params = Vec::new();
     for (i, f) in fits.iter().enumerate() {
-        let s = &f.state;
-        let line = serde_json::json!({
-            "file": path.display().to_string(), "part": i + 1, "steps": f.steps,
-            "global_steps": f.global_steps, "converged": f.converged, "nodes": tess.node_count(),
-            "outline_before": f.outline_before, "outline_after": f.outline_after,
-            "translation": s.translation.to_array(), "a": s.shape.a, "a1": s.shape.a1,
-            "a2": s.shape.a2, "a3": s.shape.a3, "e1": s.shape.e1, "e2": s.shape.e2,
-        });
+        let line = image_part_line(&path.display().to_string(), i + 1, f, tess.node_count());
         println!("{line}");
         all_params.push(line);
     }
@@ -399,6 +417,103 @@ fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
         "iou_after": silhouette_iou(&potential, &parts_on(&tess, &after)),
     });
     println!("{summary}");
+    Ok(())
+}
+
+/// The one-line summary of a range fit (the point fitter's, and a range part's in a scene).
+fn range_summary(
+    name: &str,
+    report: &FitReport,
+    points: usize,
+    wall: Duration,
+    through: &str,
+    global_only: bool,
+) -> serde_json::Value {
+    let r = report.residuals;
+    let params = FittedParams::from_report(report);
+    serde_json::json!({
+        "file": name,
+        "steps": report.steps,
+        "global_steps": report.global_steps,
+        "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
+        "steps_per_s": (report.steps as f64 / wall.as_secs_f64().max(1e-9)).round(),
+        "points": points,
+        "nodes": report.tess.node_count(),
+        "global_only": global_only,
+        "through": through,
+        "converged": report.converged,
+        "mean": r.mean,
+        "rms": r.rms,
+        "p95": r.p95,
+        "max": r.max,
+        "a": params.shape.a, "a1": params.shape.a1, "a2": params.shape.a2, "a3": params.shape.a3,
+        "e1": params.shape.e1, "e2": params.shape.e2,
+    })
+}
+
+/// The one-line summary of one part of an image fit.
+fn image_part_line(file: &str, part: usize, f: &ImagePartFit, nodes: usize) -> serde_json::Value {
+    let s = &f.state;
+    serde_json::json!({
+        "file": file, "part": part, "steps": f.steps,
+        "global_steps": f.global_steps, "converged": f.converged, "nodes": nodes,
+        "outline_before": f.outline_before, "outline_after": f.outline_after,
+        "translation": s.translation.to_array(), "a": s.shape.a, "a1": s.shape.a1,
+        "a2": s.shape.a2, "a3": s.shape.a3, "e1": s.shape.e1, "e2": s.shape.e2,
+    })
+}
+
+/// Runs every part of a scene file to rest without a window: one JSON line per part (a range
+/// part's as the point fitter's, an image part's as an image fit's), with the scene and the part's
+/// name; `--out-mesh` writes every part into one OBJ, `--out-params` a JSON array of the lines,
+/// `--out-scene` the scene with every part's fitted pose, shape and local displacements.
+fn run_scene_file(path: &Path, args: &Args) -> Result<(), String> {
+    let (mut def, data) = SceneDef::load_file(path).map_err(|e| e.to_string())?;
+    let max_steps = args.max_steps_override;
+    let start = Instant::now();
+    let runs = run_scene(&def, &data, max_steps);
+    let wall = start.elapsed();
+    let file = path.display().to_string();
+    let (mut lines, mut vertices, mut triangles) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, (run, part)) in runs.iter().zip(&def.parts).enumerate() {
+        let run = run.as_ref().map_err(|e| format!("{file}: {e}"))?;
+        let tess = Tessellation::new(part.k);
+        let mut line = match run {
+            PartRun::Range(report) => {
+                let n = data.range_points(part).map_or(0, |p| p.len());
+                range_summary(&file, report, n, wall, "core", part.free.global_only)
+            }
+            PartRun::Image(f) => image_part_line(&file, i + 1, f, tess.node_count()),
+            PartRun::Free(_) => serde_json::json!({ "file": file, "steps": 0, "converged": true }),
+        };
+        line["part"] = (i + 1).into();
+        line["name"] = part.name.clone().into();
+        println!("{line}");
+        lines.push(line);
+        let mut x = Vec::new();
+        run.state().node_positions(&tess, &mut x);
+        let base = vertices.len() as u32;
+        vertices.extend_from_slice(&x);
+        triangles.extend(tess.triangles().iter().map(|t| t.map(|i| i + base)));
+    }
+    if let Some(out) = &args.out_mesh {
+        let note = format!("{} parts of scene {file}", def.parts.len());
+        write_obj(out, &vertices, &triangles, &note).map_err(|e| e.to_string())?;
+    }
+    if let Some(out) = &args.out_params {
+        let json = serde_json::to_string_pretty(&lines).map_err(|e| e.to_string())?;
+        std::fs::write(out, json).map_err(|e| format!("{}: cannot write: {e}", out.display()))?;
+    }
+    if let Some(out) = &args.out_scene {
+        for (i, run) in runs.iter().enumerate() {
+            if let Ok(run) = run {
+                def.set_state(i, run.state(), true);
+            }
+        }
+        let from = path.parent().unwrap_or(Path::new(""));
+        def.rebase(from, out.parent().unwrap_or(Path::new("")));
+        def.save(out).map_err(|e| e.to_string())?;
+    }
     Ok(())
 }
 

@@ -55,6 +55,12 @@ pub fn load_points(path: &Path) -> Result<Vec<DVec3>, IoError> {
         return Err(err(path, "is a directory, not a point file"));
     }
     let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    decode_points(path, &bytes)
+}
+
+/// Parses the bytes of an `.obj` or `.ply` point file (the format by `path`'s extension, which
+/// also names the source in errors); see [`load_points`].
+pub fn decode_points(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
     if bytes.iter().all(|b| b.is_ascii_whitespace()) {
         return Err(err(path, "the file is empty"));
     }
@@ -64,8 +70,8 @@ pub fn load_points(path: &Path) -> Result<Vec<DVec3>, IoError> {
         .unwrap_or("")
         .to_ascii_lowercase();
     let points = match ext.as_str() {
-        "obj" => load_obj(path, &bytes)?,
-        "ply" => load_ply(path, &bytes)?,
+        "obj" => load_obj(path, bytes)?,
+        "ply" => load_ply(path, bytes)?,
         _ => {
             return Err(err(
                 path,

@@ -12,6 +12,7 @@
 //! * [`io`] — reading point clouds (OBJ, PLY) and writing meshes and parameters.
 //! * [`plugin`] — [`DeformableSqPlugin`]: models as components, simulated by one chained system set.
 //! * [`render`] — each model drawn as a dynamic mesh; `debug_render` (feature) draws data and springs.
+//! * [`scene`] — scene files (RON): parts, their data and settings; loaded, run and saved.
 //! * [`synthetic`] — deterministic test shapes: the paper's egg and mug, sampled superquadrics.
 
 #[cfg(feature = "debug_render")]
@@ -20,6 +21,7 @@ pub mod io;
 pub mod model;
 pub mod plugin;
 pub mod render;
+pub mod scene;
 pub mod synthetic;
 
 pub use plugin::{DeformableSqPlugin, DeformableSqSystems};
@@ -28,6 +30,9 @@ pub use plugin::{DeformableSqPlugin, DeformableSqSystems};
 pub mod prelude {
     #[cfg(feature = "debug_render")]
     pub use crate::debug_render::{DebugRenderConfig, DeformableSqDebugPlugin};
+    pub use crate::plugin::scene::{
+        DeformableScene, DeformableSceneCamera, DeformableSceneRoot, SceneInstance, ScenePart,
+    };
     pub use crate::plugin::{
         DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, ImageData, LocalDofs,
         ModelSettings, RangeData, RigidState, SimControl, Spring, SpringForces,

@@ -247,3 +247,88 @@ fn fits_parts_to_an_image_and_writes_the_overlay() {
     let obj = std::fs::read_to_string(&mesh).unwrap();
     assert_eq!(obj.lines().filter(|l| l.starts_with("v ")).count(), 146);
 }
+
+#[test]
+fn a_bad_scene_exits_2_naming_the_file_and_field() {
+    let dir = scratch();
+    let bad = dir.join("bad.dsq.ron");
+    std::fs::write(
+        &bad,
+        r#"(data: {"egg": Generated(Egg)}, parts: [(placement: Pose(translation: (0.0, 0.0, 0.0), shape: (a: 1.0, a1: 1.0, a2: 1.0, a3: 1.0, e1: 1.0, e2: 1.0)), w0: -2.0, forces: Range(data: "egg"))])"#,
+    )
+    .unwrap();
+    assert_bad_input(
+        &["--scene", &bad.display().to_string()],
+        "bad.dsq.ron",
+        "parts[0].w0",
+    );
+    let missing = dir.join("missing.dsq.ron");
+    assert_bad_input(
+        &["--scene", &missing.display().to_string()],
+        "missing.dsq.ron",
+        "cannot read",
+    );
+}
+
+#[test]
+fn the_scene_runner_fits_every_part_and_writes_mesh_params_and_scene() {
+    let dir = scratch();
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes/cow.dsq.ron");
+    let (mesh, params, saved) = (
+        dir.join("cow.obj"),
+        dir.join("cow.json"),
+        dir.join("out/cow_fitted.dsq.ron"),
+    );
+    std::fs::create_dir_all(saved.parent().unwrap()).unwrap();
+    let out = run(&[
+        "--scene",
+        &scene.display().to_string(),
+        "--max-steps",
+        "300",
+        "--out-mesh",
+        &mesh.display().to_string(),
+        "--out-params",
+        &params.display().to_string(),
+        "--out-scene",
+        &saved.display().to_string(),
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let names: Vec<&str> = lines.iter().map(|l| l["name"].as_str().unwrap()).collect();
+    assert_eq!(
+        names,
+        [
+            "body",
+            "head",
+            "back leg 1",
+            "back leg 2",
+            "fore leg 1",
+            "fore leg 2"
+        ]
+    );
+    for (i, l) in lines.iter().enumerate() {
+        assert_eq!(l["part"], i + 1);
+        assert_eq!(l["steps"], 300, "{l}");
+        assert!(l["rms"].as_f64().unwrap() < 0.1, "{l}");
+        assert_eq!(l["nodes"], 443);
+    }
+    let obj = std::fs::read_to_string(&mesh).unwrap();
+    assert_eq!(obj.lines().filter(|l| l.starts_with("v ")).count(), 6 * 443);
+    let json: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(&params).unwrap()).unwrap();
+    assert_eq!(json.len(), 6);
+    // The written scene finds its data from its new directory and starts where the fit ended.
+    let (def, data) =
+        bevy_deformable_sq::scene::SceneDef::load_file(&saved).unwrap_or_else(|e| panic!("{e}"));
+    let (orig, _) = bevy_deformable_sq::scene::SceneDef::load_file(&scene).unwrap();
+    assert_eq!(data.points["cow"].len(), 2903);
+    for i in 0..6 {
+        assert!(def.parts[i].local.is_some());
+        assert_ne!(def.parts[i].placement, orig.parts[i].placement);
+        assert_eq!(def.parts[i].forces, orig.parts[i].forces);
+    }
+}

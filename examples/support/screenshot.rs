@@ -1,5 +1,5 @@
 //! Shared by the examples: `--screenshot FILE [--exit-after-steps N]` runs until every model has
-//! taken N simulation steps (default 300), saves a screenshot of the window and exits — for CI and
+//! taken N simulation steps (default 300) or come to rest, saves a screenshot of the window and exits — for CI and
 //! for README images. Pipelines compile synchronously in this mode so the frame is never blank.
 
 use bevy::app::PluginGroupBuilder;
@@ -61,8 +61,12 @@ pub fn maybe_add(app: &mut App) {
 
 fn take(mut commands: Commands, mut req: ResMut<Request>, models: Query<&SimControl>) {
     req.frames += 1;
-    let steps = models.iter().map(|c| c.steps).min().unwrap_or(0);
-    if req.taken || req.frames < 10 || steps < req.after_steps {
+    // Every model has taken its steps, or stopped (a fit at rest pauses its model).
+    let ready = !models.is_empty()
+        && models
+            .iter()
+            .all(|c| c.steps >= req.after_steps || c.paused || c.frozen);
+    if req.taken || req.frames < 10 || !ready {
         return;
     }
     req.taken = true;

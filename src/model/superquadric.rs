@@ -23,6 +23,7 @@ pub const MAX_EPSILON: f64 = 2.0;
 
 /// The global deformation coordinates q_s = (a, a1, a2, a3, ε1, ε2) of eq. (5).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SuperquadricParams {
     /// Scale a ≥ 0.
     pub a: f64,

@@ -5,9 +5,11 @@
 //! [`FixedUpdate`]) through one chained system set, [`DeformableSqSystems`], whose stages are the
 //! paper's loop. With the render plugins present each model is also a [`Mesh3d`] whose vertices
 //! follow the surface (see [`crate::render`]); with `MinimalPlugins` it simulates headless.
+//! With an `AssetPlugin`, scene files spawn models and their data (see [`scene`]).
 
 pub mod components;
 pub mod headless;
+pub mod scene;
 pub mod systems;
 
 pub use components::*;
@@ -93,5 +95,10 @@ impl Plugin for DeformableSqPlugin {
         #[cfg(debug_assertions)]
         app.add_systems(self.schedule, systems::assert_finite.in_set(WriteBack));
         crate::render::build(app);
+        // Scene files are assets: with an `AssetPlugin` (added before this plugin, as
+        // `DefaultPlugins` does) the scene loader and spawner come too.
+        if app.is_plugin_added::<bevy::asset::AssetPlugin>() {
+            scene::build(app);
+        }
     }
 }

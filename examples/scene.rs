@@ -1,0 +1,48 @@
+//! Loads a scene file and simulates its parts live: range parts run the scene's fit to rest,
+//! image parts are pulled by their image.
+//! `cargo run --release --example scene [-- SCENE] [--screenshot FILE [--exit-after-steps N]]`
+//! SCENE is a `.dsq.ron` file under `assets/` (default `scenes/cow.dsq.ron`). A scene that fails
+//! to load is logged and the window stays open.
+use bevy::prelude::*;
+use bevy_deformable_sq::prelude::*;
+
+/// The scene to load, relative to `assets/`.
+#[derive(Resource)]
+struct ScenePath(String);
+
+fn main() {
+    let scene = std::env::args()
+        .skip(1)
+        .find(|a| a.ends_with(".dsq.ron"))
+        .unwrap_or_else(|| "scenes/cow.dsq.ron".into());
+    let mut app = App::new();
+    app.add_plugins((
+        screenshot::default_plugins(),
+        DeformableSqPlugin::default(),
+        DeformableSqDebugPlugin,
+    ))
+    .insert_resource(ScenePath(scene))
+    .add_systems(Startup, setup);
+    screenshot::maybe_add(&mut app);
+    app.run();
+}
+
+fn setup(mut commands: Commands, assets: Res<AssetServer>, scene: Res<ScenePath>) {
+    commands.spawn(DeformableSceneRoot(assets.load(scene.0.clone())));
+    // Placed by the scene's `camera` when it has one.
+    commands.spawn((
+        Camera3d::default(),
+        DeformableSceneCamera,
+        Transform::from_xyz(0.0, 1.0, 3.0).looking_at(Vec3::ZERO, Vec3::Y),
+    ));
+    commands.spawn((
+        DirectionalLight {
+            shadow_maps_enabled: true,
+            ..default()
+        },
+        Transform::from_xyz(2.0, 4.0, 3.0).looking_at(Vec3::ZERO, Vec3::Y),
+    ));
+}
+
+#[path = "support/screenshot.rs"]
+mod screenshot;

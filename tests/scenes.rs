@@ -1,0 +1,585 @@
+//! Scene files: every shipped scene loads and runs headless; scenes load through the asset
+//! loader into entities and despawn with their root; a saved scene loads back bit for bit; every
+//! kind of bad scene gives an error naming the file and the line or field.
+
+use bevy::asset::AssetPlugin;
+use bevy::ecs::schedule::ScheduleLabel;
+use bevy::math::{DQuat, DVec2, DVec3};
+use bevy::prelude::*;
+use bevy_deformable_sq::model::dynamics::ModelState;
+use bevy_deformable_sq::model::fem::Tessellation;
+use bevy_deformable_sq::model::fit::residuals;
+use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment, pestle_experiment};
+use bevy_deformable_sq::plugin::FitDriver;
+use bevy_deformable_sq::plugin::scene::save_scene;
+use bevy_deformable_sq::prelude::*;
+use bevy_deformable_sq::scene::{PartRun, SceneDef, SceneError, run_scene};
+use bevy_deformable_sq::synthetic;
+use std::path::{Path, PathBuf};
+
+const SHIPPED: [(&str, usize); 7] = [
+    ("egg", 1),
+    ("mug", 1),
+    ("pestle", 1),
+    ("doll", 11),
+    ("bunny", 1),
+    ("hippo1", 1),
+    ("cow", 6),
+];
+
+fn shipped(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("assets/scenes")
+        .join(format!("{name}.dsq.ron"))
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("bdsq-scenes-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn node_positions(k: usize, s: &ModelState) -> (Tessellation, Vec<DVec3>) {
+    let tess = Tessellation::new(k);
+    let mut x = Vec::new();
+    s.node_positions(&tess, &mut x);
+    (tess, x)
+}
+
+#[test]
+fn every_shipped_scene_loads_and_runs_headless() {
+    for (name, parts) in SHIPPED {
+        let (def, data) = SceneDef::load_file(&shipped(name)).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(def.parts.len(), parts, "{name}");
+        // A few hundred steps each: every part must be pulled towards its data.
+        let runs = run_scene(&def, &data, Some(400));
+        for (i, run) in runs.into_iter().enumerate() {
+            let run = run.unwrap_or_else(|e| panic!("{name}: {e}"));
+            let part = &def.parts[i];
+            let start = data.initial_state(&def, i).unwrap();
+            assert!(run.state().is_finite(), "{name} part {i}");
+            match run {
+                PartRun::Range(report) => {
+                    let pts = data.range_points(part).unwrap();
+                    let (tess, x0) = node_positions(part.k, &start);
+                    let before = residuals(&tess, &x0, &pts).rms;
+                    assert!(
+                        report.residuals.rms < 0.9 * before,
+                        "{name} part {i}: rms {before} -> {}",
+                        report.residuals.rms
+                    );
+                }
+                PartRun::Image(f) => assert!(
+                    f.outline_after > f.outline_before + 0.1,
+                    "{name} part {i} ({}): outline {} -> {}",
+                    part.name,
+                    f.outline_before,
+                    f.outline_after
+                ),
+                PartRun::Free(_) => panic!("{name}: shipped parts all have data"),
+            }
+        }
+    }
+}
+
+#[test]
+fn egg_and_mug_scenes_run_the_papers_experiments_to_rest() {
+    for (name, (points, options)) in [
+        ("egg", synthetic::egg_experiment()),
+        ("mug", synthetic::mug_experiment()),
+    ] {
+        let (def, data) = SceneDef::load_file(&shipped(name)).unwrap();
+        let part = &def.parts[0];
+        let start = data.initial_state(&def, 0).unwrap();
+        assert_eq!(data.range_points(part).unwrap(), points, "{name}");
+        // The same options bit for bit, hence the same fit as `fit --paper egg|mug`.
+        assert_eq!(part.fit_options(&start), options, "{name}");
+        let run = run_scene(&def, &data, None).remove(0).unwrap();
+        let PartRun::Range(report) = run else {
+            panic!("{name}: not a range part")
+        };
+        assert!(report.converged, "{name} did not come to rest");
+        assert!(
+            report.residuals.rms < 0.01,
+            "{name}: {:?}",
+            report.residuals
+        );
+    }
+}
+
+#[test]
+fn pestle_and_doll_scenes_are_the_papers_image_experiments() {
+    for (name, experiment) in [("pestle", pestle_experiment()), ("doll", doll_experiment())] {
+        let (def, data) = SceneDef::load_file(&shipped(name)).unwrap();
+        assert_eq!(def.parts.len(), experiment.parts.len());
+        let potential = data.images.values().next().unwrap();
+        for (i, (part, (part_name, px))) in def.parts.iter().zip(&experiment.parts).enumerate() {
+            assert_eq!(&part.name, part_name);
+            assert_eq!(
+                part.image_options(),
+                experiment.options,
+                "{name} {part_name}"
+            );
+            let axes = PartAxes::from_points(potential, *px).unwrap();
+            let tess = Tessellation::new(part.k);
+            assert_eq!(
+                data.initial_state(&def, i).unwrap(),
+                axes.state(&tess),
+                "{name} {part_name}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_saved_scene_parses_back_to_the_same_state_bit_for_bit() {
+    let (mut def, data) = SceneDef::load_file(&shipped("mug")).unwrap();
+    let k = def.parts[0].k;
+    // Awkward values: not exactly representable decimals, subnormals, signed zero, extremes.
+    let odd = [
+        0.1 + 0.2,
+        1e-300,
+        -0.0,
+        5e-324,
+        1.0 / 3.0,
+        -2.5e17,
+        f64::EPSILON,
+    ];
+    let displacement: Vec<DVec3> = (0..k * k + 2)
+        .map(|i| {
+            DVec3::new(
+                odd[i % odd.len()] * (i as f64).sqrt(),
+                odd[(i + 3) % odd.len()],
+                (i as f64 * 0.37).sin() * 1e-3,
+            )
+        })
+        .collect();
+    let state = ModelState {
+        translation: DVec3::new(0.1 + 0.2, -1.0 / 7.0, 1e-17),
+        rotation: DQuat::from_euler(EulerRot::XYZ, 0.3, -1.2, 2.9),
+        shape: bevy_deformable_sq::model::superquadric::SuperquadricParams {
+            a: 0.712_345_678_901_234_5,
+            a1: 1.0,
+            a2: 0.3 + 1e-16,
+            a3: 2.0 / 3.0,
+            e1: 0.1 + 0.7,
+            e2: 1.999_999_999_999_999_8,
+        },
+        displacement,
+    };
+    def.set_state(0, &state, true);
+    let text = def.to_ron();
+    let back = SceneDef::parse(&text, Path::new("saved.dsq.ron")).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(back, def);
+    let loaded = data.initial_state(&back, 0).unwrap();
+    assert_eq!(
+        loaded.translation.to_array().map(f64::to_bits),
+        state.translation.to_array().map(f64::to_bits)
+    );
+    assert_eq!(
+        loaded.rotation.to_array().map(f64::to_bits),
+        state.rotation.to_array().map(f64::to_bits)
+    );
+    assert_eq!(
+        loaded.shape.to_array().map(f64::to_bits),
+        state.shape.to_array().map(f64::to_bits)
+    );
+    let bits = |d: &[DVec3]| -> Vec<[u64; 3]> {
+        d.iter().map(|v| v.to_array().map(f64::to_bits)).collect()
+    };
+    assert_eq!(bits(&loaded.displacement), bits(&state.displacement));
+    // Without the local displacements they are dropped, and load as zero.
+    def.set_state(0, &state, false);
+    let back = SceneDef::parse(&def.to_ron(), Path::new("saved.dsq.ron")).unwrap();
+    assert!(back.parts[0].local.is_none());
+    assert!(
+        data.initial_state(&back, 0)
+            .unwrap()
+            .displacement
+            .iter()
+            .all(|d| *d == DVec3::ZERO)
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// Errors
+
+const GOOD_PART: &str = r#"(
+        name: "p",
+        placement: Pose(translation: (0.0, 0.0, 0.0), shape: (a: 1.0, a1: 1.0, a2: 1.0, a3: 1.0, e1: 1.0, e2: 1.0)),
+        k: 5,
+        w0: 0.001,
+        w1: 0.1,
+        forces: Range(data: "pts"),
+    )"#;
+
+fn scene_text(part: &str, data: &str) -> String {
+    format!(
+        "#![enable(implicit_some)]\n(\n    data: {{ {data} }},\n    parts: [\n    {part}\n    ],\n)\n"
+    )
+}
+
+fn parse_err(text: &str) -> SceneError {
+    SceneDef::parse(text, Path::new("bad.dsq.ron")).expect_err("the scene should be refused")
+}
+
+fn assert_names(e: &SceneError, field: Option<&str>, line: Option<usize>, what: &str) {
+    let s = e.to_string();
+    assert!(s.contains("bad.dsq.ron"), "{s}");
+    if let Some(f) = field {
+        assert_eq!(e.field.as_deref(), Some(f), "{s}");
+    }
+    if let Some(l) = line {
+        assert_eq!(e.position.map(|p| p.0), Some(l), "{s}");
+    }
+    assert!(s.to_lowercase().contains(what), "{s} does not say {what:?}");
+}
+
+const PTS: &str = r#""pts": Generated(Egg)"#;
+
+#[test]
+fn a_good_scene_text_parses() {
+    let def = SceneDef::parse(&scene_text(GOOD_PART, PTS), Path::new("good.dsq.ron")).unwrap();
+    assert_eq!(def.parts[0].k, 5);
+    assert_eq!(def.parts[0].dt, 0.05, "defaults fill what is left out");
+}
+
+#[test]
+fn unknown_field_names_the_line_and_field() {
+    let text = scene_text(
+        &GOOD_PART.replace("k: 5,", "k: 5,\n        stiffnes: 3.0,"),
+        PTS,
+    );
+    let e = parse_err(&text);
+    // Line 1 is the extension, 2 `(`, 3 data, 4 `parts: [`, 5 `(`, 6 name, 7 placement, 8 k.
+    assert_names(&e, Some("parts[0].stiffnes"), Some(9), "unexpected field");
+}
+
+#[test]
+fn wrong_type_names_the_line_and_field() {
+    let e = parse_err(&scene_text(&GOOD_PART.replace("k: 5", "k: \"five\""), PTS));
+    assert_names(&e, Some("parts[0].k"), Some(8), "expected");
+}
+
+#[test]
+fn nan_is_refused_with_the_field() {
+    let e = parse_err(&scene_text(&GOOD_PART.replace("w1: 0.1", "w1: NaN"), PTS));
+    assert_names(&e, Some("parts[0].w1"), None, "finite");
+}
+
+#[test]
+fn negative_stiffness_is_refused_with_the_field() {
+    let e = parse_err(&scene_text(
+        &GOOD_PART.replace("w0: 0.001", "w0: -1.0"),
+        PTS,
+    ));
+    assert_names(&e, Some("parts[0].w0"), None, "-1");
+}
+
+#[test]
+fn k_below_3_is_refused_with_the_field() {
+    let e = parse_err(&scene_text(&GOOD_PART.replace("k: 5", "k: 2"), PTS));
+    assert_names(&e, Some("parts[0].k"), None, "found 2");
+}
+
+#[test]
+fn unknown_data_source_is_refused_with_the_field() {
+    let e = parse_err(&scene_text(GOOD_PART, r#""other": Generated(Mug)"#));
+    assert_names(&e, Some("parts[0].forces.data"), None, "\"pts\"");
+}
+
+/// A scene in a fresh directory whose single data source is `data`, with `files` beside it.
+fn scene_dir_with(name: &str, data: &str, files: &[(&str, &[u8])]) -> PathBuf {
+    let dir = scratch(name);
+    for (f, bytes) in files {
+        std::fs::write(dir.join(f), bytes).unwrap();
+    }
+    let file = dir.join("bad.dsq.ron");
+    std::fs::write(&file, scene_text(GOOD_PART, data)).unwrap();
+    file
+}
+
+fn load_err(file: &Path) -> SceneError {
+    SceneDef::load_file(file).expect_err("the scene should be refused")
+}
+
+#[test]
+fn missing_data_file_names_the_source() {
+    let file = scene_dir_with(
+        "missing",
+        r#""pts": Points(path: "nowhere/cloud.ply")"#,
+        &[],
+    );
+    let e = load_err(&file);
+    assert_names(&e, Some("data.pts.path"), None, "cannot read");
+    assert!(e.to_string().contains("cloud.ply"), "{e}");
+}
+
+#[test]
+fn empty_point_file_names_the_source() {
+    let file = scene_dir_with(
+        "empty",
+        r#""pts": Points(path: "empty.obj")"#,
+        &[("empty.obj", b"\n")],
+    );
+    let e = load_err(&file);
+    assert_names(&e, Some("data.pts.path"), None, "empty");
+}
+
+#[test]
+fn unreadable_image_names_the_source() {
+    let part = GOOD_PART.replace(r#"Range(data: "pts")"#, r#"Image(data: "img")"#);
+    let dir = scratch("image");
+    std::fs::write(dir.join("broken.png"), b"\x89PNG but not really").unwrap();
+    let file = dir.join("bad.dsq.ron");
+    std::fs::write(
+        &file,
+        scene_text(&part, r#""img": Image(path: "broken.png")"#),
+    )
+    .unwrap();
+    let e = load_err(&file);
+    assert_names(&e, Some("data.img.path"), None, "decode");
+    assert!(e.to_string().contains("broken.png"), "{e}");
+}
+
+#[test]
+fn a_crop_that_leaves_too_few_points_is_refused() {
+    let part = GOOD_PART.replace(
+        r#"Range(data: "pts")"#,
+        r#"Range(data: "pts", crop: (min: (5.0, 5.0, 5.0), max: (6.0, 6.0, 6.0)))"#,
+    );
+    let dir = scratch("crop");
+    let file = dir.join("bad.dsq.ron");
+    std::fs::write(&file, scene_text(&part, PTS)).unwrap();
+    let e = load_err(&file);
+    assert_names(&e, Some("parts[0].forces"), None, "0 data points");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Through the plugin
+
+/// The schedule the simulation runs in, stepped by hand so that `update` only loads and spawns.
+#[derive(ScheduleLabel, Clone, Debug, PartialEq, Eq, Hash)]
+struct Step;
+
+fn scene_app(assets: &Path) -> App {
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        AssetPlugin {
+            file_path: assets.display().to_string(),
+            ..default()
+        },
+        DeformableSqPlugin::in_schedule(Step),
+    ));
+    app.init_schedule(Step);
+    app
+}
+
+/// Spawns a root for `path` and updates until its parts are spawned or it failed (bounded).
+fn load(app: &mut App, path: &str) -> Entity {
+    let handle = app.world().resource::<AssetServer>().load(path.to_string());
+    let root = app.world_mut().spawn(DeformableSceneRoot(handle)).id();
+    for _ in 0..2000 {
+        app.update();
+        let instance = app.world().get::<SceneInstance>(root).unwrap();
+        if instance.spawned.is_some() || instance.error.is_some() {
+            return root;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    panic!("{path} neither loaded nor failed");
+}
+
+fn parts(app: &App, root: Entity) -> Vec<Entity> {
+    app.world()
+        .get::<SceneInstance>(root)
+        .unwrap()
+        .parts
+        .clone()
+}
+
+fn shipped_assets() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("assets")
+}
+
+#[test]
+fn shipped_scenes_spawn_entities_that_simulate_and_despawn_with_the_root() {
+    let mut app = scene_app(&shipped_assets());
+    for (name, n) in SHIPPED {
+        let root = load(&mut app, &format!("scenes/{name}.dsq.ron"));
+        let instance = app.world().get::<SceneInstance>(root).unwrap();
+        assert!(instance.error.is_none(), "{name}: {:?}", instance.error);
+        let ps = parts(&app, root);
+        assert_eq!(ps.len(), n, "{name}");
+        let (def, _) = SceneDef::load_file(&shipped(name)).unwrap();
+        for (&e, part) in ps.iter().zip(&def.parts) {
+            let w = app.world();
+            assert_eq!(w.get::<Name>(e).unwrap().as_str(), part.name);
+            assert_eq!(w.get::<FemMesh>(e).unwrap().k, part.k);
+            assert_eq!(w.get::<ChildOf>(e).unwrap().parent(), root);
+            let image = part.on_image();
+            assert_eq!(w.get::<ImageData>(e).is_some(), image, "{name}");
+            assert_eq!(w.get::<RangeData>(e).is_some(), !image, "{name}");
+            assert_eq!(w.get::<FitDriver>(e).is_some(), !image, "{name}");
+            assert_eq!(w.get::<ModelSettings>(e).unwrap().planar, image);
+        }
+        for _ in 0..5 {
+            app.world_mut().run_schedule(Step);
+        }
+        for &e in &ps {
+            let w = app.world();
+            let c = w.get::<SimControl>(e).unwrap();
+            assert_eq!((c.steps, c.frozen), (5, false), "{name}");
+            let shape = w.get::<GlobalShape>(e).unwrap();
+            assert!(shape.a.is_finite() && w.get::<RigidState>(e).unwrap().translation.is_finite());
+        }
+        app.world_mut().entity_mut(root).despawn();
+        app.update();
+        for &e in &ps {
+            assert!(
+                app.world().get_entity(e).is_err(),
+                "{name}: part outlived its root"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_scene_saved_from_the_app_loads_back_bit_for_bit() {
+    // The egg scene's data are generated: it can move to a scratch asset folder as it is.
+    let dir = scratch("roundtrip");
+    std::fs::copy(shipped("egg"), dir.join("egg.dsq.ron")).unwrap();
+    let mut app = scene_app(&dir);
+    let root = load(&mut app, "egg.dsq.ron");
+    for _ in 0..40 {
+        app.world_mut().run_schedule(Step);
+    }
+    let e = parts(&app, root)[0];
+    // The fit holds the local DOFs at first: give them values as an inspector would.
+    for (i, d) in app
+        .world_mut()
+        .get_mut::<LocalDofs>(e)
+        .unwrap()
+        .displacement
+        .iter_mut()
+        .enumerate()
+    {
+        *d = DVec3::new((i as f64 * 0.1).sin(), 1.0 / (i as f64 + 3.0), -0.0) * 1e-3;
+    }
+    for _ in 0..5 {
+        app.world_mut().run_schedule(Step);
+    }
+    let local = app.world().get::<LocalDofs>(e).unwrap().clone();
+    assert!(
+        local
+            .displacement
+            .iter()
+            .filter(|d| **d != DVec3::ZERO)
+            .count()
+            > 100
+    );
+    save_scene(app.world(), root, &dir.join("saved.dsq.ron"), &dir, true).unwrap();
+
+    let mut again = scene_app(&dir);
+    let root2 = load(&mut again, "saved.dsq.ron");
+    let e2 = parts(&again, root2)[0];
+    let (a, b) = (app.world(), again.world());
+    let rigid = |w: &World, e| *w.get::<RigidState>(e).unwrap();
+    let shape = |w: &World, e| *w.get::<GlobalShape>(e).unwrap();
+    let bits = |r: RigidState, s: GlobalShape| {
+        let mut v: Vec<u64> = r
+            .translation
+            .to_array()
+            .iter()
+            .map(|x| x.to_bits())
+            .collect();
+        v.extend(r.rotation.to_array().iter().map(|x| x.to_bits()));
+        v.extend(
+            [s.a, s.a1, s.a2, s.a3, s.e1, s.e2]
+                .iter()
+                .map(|x| x.to_bits()),
+        );
+        v
+    };
+    assert_eq!(
+        bits(rigid(a, e), shape(a, e)),
+        bits(rigid(b, e2), shape(b, e2))
+    );
+    let moved = rigid(a, e).translation
+        != DVec3::new(
+            0.04364729458917831,
+            0.013887775551102207,
+            0.3739771742297049,
+        );
+    assert!(moved, "the model did not move in 40 steps");
+    let local2 = b.get::<LocalDofs>(e2).unwrap();
+    let dbits = |d: &[DVec3]| -> Vec<[u64; 3]> {
+        d.iter().map(|v| v.to_array().map(f64::to_bits)).collect()
+    };
+    assert_eq!(dbits(&local2.displacement), dbits(&local.displacement));
+    assert_eq!(b.get::<ModelSettings>(e2), a.get::<ModelSettings>(e));
+}
+
+#[test]
+fn a_bad_scene_is_logged_and_the_app_keeps_running() {
+    let dir = scratch("badapp");
+    std::fs::write(
+        dir.join("bad.dsq.ron"),
+        scene_text(&GOOD_PART.replace("k: 5", "k: 1"), PTS),
+    )
+    .unwrap();
+    std::fs::copy(shipped("mug"), dir.join("mug.dsq.ron")).unwrap();
+    let mut app = scene_app(&dir);
+    let bad = load(&mut app, "bad.dsq.ron");
+    let error = app.world().get::<SceneInstance>(bad).unwrap().error.clone();
+    let error = error.expect("the failure is recorded");
+    assert!(
+        error.contains("bad.dsq.ron") && error.contains("parts[0].k"),
+        "{error}"
+    );
+    assert!(parts(&app, bad).is_empty());
+    // The app goes on: another scene still loads and simulates.
+    let good = load(&mut app, "mug.dsq.ron");
+    assert_eq!(parts(&app, good).len(), 1);
+    app.world_mut().run_schedule(Step);
+    app.update();
+    let e = parts(&app, good)[0];
+    assert_eq!(app.world().get::<SimControl>(e).unwrap().steps, 1);
+}
+
+#[test]
+fn a_changed_scene_asset_respawns_its_parts() {
+    let mut app = scene_app(&shipped_assets());
+    let root = load(&mut app, "scenes/mug.dsq.ron");
+    let before = parts(&app, root);
+    let id = app.world().get::<DeformableSceneRoot>(root).unwrap().0.id();
+    app.world_mut()
+        .resource_mut::<Assets<DeformableScene>>()
+        .get_mut(id)
+        .unwrap()
+        .def
+        .parts[0]
+        .k = 9;
+    app.update();
+    app.update();
+    let after = parts(&app, root);
+    assert_eq!(after.len(), 1);
+    assert_ne!(after, before, "the part was not respawned");
+    assert!(app.world().get_entity(before[0]).is_err());
+    assert_eq!(app.world().get::<FemMesh>(after[0]).unwrap().k, 9);
+}
+
+#[test]
+fn axes_placement_matches_the_image_fitters() {
+    // A part placed by four pixel points sits where `PartAxes` puts it: centre of the major axis.
+    let (def, data) = SceneDef::load_file(&shipped("pestle")).unwrap();
+    let potential = data.images["rocket"].clone();
+    let s = data.initial_state(&def, 0).unwrap();
+    let centre = potential.to_plane(DVec2::new(322.0, 265.0));
+    assert!(
+        (s.translation.truncate() - centre).length() < 1e-12,
+        "{:?} vs {centre:?}",
+        s.translation
+    );
+}
