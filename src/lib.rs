@@ -31,7 +31,8 @@ pub mod prelude {
     #[cfg(feature = "debug_render")]
     pub use crate::debug_render::{DebugRenderConfig, DeformableSqDebugPlugin};
     pub use crate::plugin::scene::{
-        DeformableScene, DeformableSceneCamera, DeformableSceneRoot, SceneInstance, ScenePart,
+        DeformableScene, DeformableSceneCamera, DeformableSceneRoot, SceneImage, SceneInstance,
+        ScenePart,
     };
     pub use crate::plugin::{
         DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, ImageData, LocalDofs,

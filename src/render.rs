@@ -5,6 +5,7 @@
 //! shape or the local DOFs change. Nothing here runs without `Assets<Mesh>` (headless apps).
 
 use crate::model::dynamics::node_positions;
+use crate::plugin::scene::SceneImage;
 use crate::plugin::{FemMesh, GlobalShape, LocalDofs};
 use bevy::asset::RenderAssetUsages;
 use bevy::math::{DQuat, DVec3};
@@ -35,10 +36,67 @@ pub const PALETTE: [Color; 8] = [
 pub(crate) fn build(app: &mut App) {
     app.register_type::<ModelColor>().add_systems(
         PostUpdate,
-        (attach_meshes, write_meshes)
+        (attach_meshes, write_meshes, attach_image_backdrops)
             .chain()
             .run_if(resource_exists::<Assets<Mesh>>),
     );
+}
+
+/// The image of a [`SceneImage`] as an sRGB texture (its luminance as grey, row 0 at the top).
+pub fn backdrop_texture(
+    potential: &crate::model::forces::image::ImagePotential,
+) -> bevy::image::Image {
+    use bevy::render::render_resource::{Extent3d, TextureDimension, TextureFormat};
+    let data: Vec<u8> = potential
+        .luminance()
+        .iter()
+        .flat_map(|l| {
+            let g = (l.clamp(0.0, 1.0) * 255.0).round() as u8;
+            [g, g, g, 255]
+        })
+        .collect();
+    bevy::image::Image::new(
+        Extent3d {
+            width: potential.width() as u32,
+            height: potential.height() as u32,
+            depth_or_array_layers: 1,
+        },
+        TextureDimension::D2,
+        data,
+        TextureFormat::Rgba8UnormSrgb,
+        RenderAssetUsages::RENDER_WORLD,
+    )
+}
+
+/// Draws every [`SceneImage`] that has no mesh yet as an unlit textured quad covering the image's
+/// world rectangle (see [`ImageFrame`](crate::model::forces::image::ImageFrame)).
+pub fn attach_image_backdrops(
+    mut commands: Commands,
+    mut meshes: ResMut<Assets<Mesh>>,
+    textures: Option<ResMut<Assets<bevy::image::Image>>>,
+    materials: Option<ResMut<Assets<StandardMaterial>>>,
+    images: Query<(Entity, &SceneImage), Without<Mesh3d>>,
+) {
+    let (Some(mut textures), Some(mut materials)) = (textures, materials) else {
+        return;
+    };
+    for (entity, image) in &images {
+        let p = &image.potential;
+        let frame = p.frame();
+        let pitch = frame.extent / p.width().max(p.height()) as f64;
+        let size = Vec2::new(p.width() as f32, p.height() as f32) * pitch as f32;
+        let texture = textures.add(backdrop_texture(p));
+        commands.entity(entity).insert((
+            Mesh3d(meshes.add(Rectangle::from_size(size))),
+            MeshMaterial3d(materials.add(StandardMaterial {
+                base_color_texture: Some(texture),
+                unlit: true,
+                cull_mode: None,
+                ..default()
+            })),
+            Transform::from_translation(frame.center.as_vec2().extend(0.0)),
+        ));
+    }
 }
 
 /// Model-frame vertex positions and smooth (area-weighted) normals of a model.

@@ -882,24 +882,13 @@ impl PartDef {
 
     /// The part's dynamics parameters (stiffness, Δt, damping, free DOFs).
     pub fn dynamics(&self) -> DynamicsParams {
-        let mut shape = [true; 6];
-        shape[2] = !self.planar();
-        if self.fix_epsilon() {
-            shape[4] = false;
-            shape[5] = false;
-        }
         DynamicsParams {
             w0: self.w0,
             w1: self.w1,
             dt: self.dt,
             gamma_global: self.damping.global,
             gamma_local: self.damping.local,
-            free: FreeDofs {
-                shape,
-                local: !self.free.global_only,
-                planar: self.planar(),
-                ..FreeDofs::default()
-            },
+            free: FreeDofs::with(!self.free.global_only, self.planar(), self.fix_epsilon()),
             ..DynamicsParams::default()
         }
     }

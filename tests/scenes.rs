@@ -11,7 +11,7 @@ use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::residuals;
 use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment, pestle_experiment};
 use bevy_deformable_sq::plugin::FitDriver;
-use bevy_deformable_sq::plugin::scene::save_scene;
+use bevy_deformable_sq::plugin::scene::{SceneImage, save_scene};
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::scene::{PartRun, SceneDef, SceneError, run_scene};
 use bevy_deformable_sq::synthetic;
@@ -412,7 +412,23 @@ fn shipped_scenes_spawn_entities_that_simulate_and_despawn_with_the_root() {
         assert!(instance.error.is_none(), "{name}: {:?}", instance.error);
         let ps = parts(&app, root);
         assert_eq!(ps.len(), n, "{name}");
-        let (def, _) = SceneDef::load_file(&shipped(name)).unwrap();
+        let (def, data) = SceneDef::load_file(&shipped(name)).unwrap();
+        let images = app
+            .world()
+            .get::<SceneInstance>(root)
+            .unwrap()
+            .images
+            .clone();
+        assert_eq!(
+            images.len(),
+            data.images.len(),
+            "{name}: one backdrop per image"
+        );
+        for &e in &images {
+            let image = app.world().get::<SceneImage>(e).unwrap();
+            let source = &data.images[&image.name];
+            assert_eq!(image.potential.luminance(), source.luminance(), "{name}");
+        }
         for (&e, part) in ps.iter().zip(&def.parts) {
             let w = app.world();
             assert_eq!(w.get::<Name>(e).unwrap().as_str(), part.name);
@@ -436,7 +452,7 @@ fn shipped_scenes_spawn_entities_that_simulate_and_despawn_with_the_root() {
         }
         app.world_mut().entity_mut(root).despawn();
         app.update();
-        for &e in &ps {
+        for &e in ps.iter().chain(&images) {
             assert!(
                 app.world().get_entity(e).is_err(),
                 "{name}: part outlived its root"
@@ -582,4 +598,27 @@ fn axes_placement_matches_the_image_fitters() {
         "{:?} vs {centre:?}",
         s.translation
     );
+}
+
+#[test]
+fn the_readme_example_scene_parses_and_loads() {
+    let readme =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
+    let start = readme.find("```ron\n").expect("README has a ron block") + "```ron\n".len();
+    let text = &readme[start..start + readme[start..].find("```").unwrap()];
+    // Its paths are written as from `assets/scenes/`.
+    let file = shipped("readme-example");
+    let def = SceneDef::parse(text, &file).unwrap_or_else(|e| panic!("{e}"));
+    let dir = file.parent().unwrap().to_path_buf();
+    let data = bevy_deformable_sq::scene::SceneData::resolve(&def, &file, |rel| {
+        std::fs::read(dir.join(rel)).map_err(|e| e.to_string())
+    })
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(def.parts.len(), 2);
+    assert_eq!(
+        data.range_points(&def.parts[0]).unwrap().len(),
+        3029,
+        "the crop keeps the whole bunny"
+    );
+    assert!(data.initial_state(&def, 1).is_some());
 }

@@ -199,6 +199,26 @@ impl Default for FreeDofs {
     }
 }
 
+impl FreeDofs {
+    /// Everything free except: the local DOFs unless `local`; with `planar`, motion in the
+    /// image plane only and the depth ratio a2 held (one image cannot observe it); with
+    /// `fix_epsilon`, ε1 and ε2 held.
+    pub fn with(local: bool, planar: bool, fix_epsilon: bool) -> Self {
+        let mut shape = [true; NUM_SHAPE];
+        shape[2] = !planar;
+        if fix_epsilon {
+            shape[4] = false;
+            shape[5] = false;
+        }
+        Self {
+            shape,
+            local,
+            planar,
+            ..Self::default()
+        }
+    }
+}
+
 /// Physical and numerical parameters of the first-order dynamics.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct DynamicsParams {

@@ -406,19 +406,8 @@ pub fn fit_part(
     let (mut steps, mut global_steps, mut converged) = (0, 0, true);
     for &local in stages {
         let mut params = opts.dynamics;
-        params.free = FreeDofs {
-            local,
-            planar: opts.planar,
-            ..FreeDofs::default()
-        };
-        if opts.planar {
-            // The depth semi-axis a·a2 (the model's y axis lies along world z) is not observed.
-            params.free.shape[2] = false;
-        }
-        if opts.fix_epsilon {
-            params.free.shape[4] = false;
-            params.free.shape[5] = false;
-        }
+        // Planar: the depth semi-axis a·a2 (the model's y axis lies along world z) is not observed.
+        params.free = FreeDofs::with(local, opts.planar, opts.fix_epsilon);
         let mut at_rest = false;
         while steps < opts.max_steps {
             nf.clear(tess.node_count());

@@ -218,24 +218,13 @@ impl ModelSettings {
 
     /// The core's dynamics parameters.
     pub fn dynamics(&self) -> DynamicsParams {
-        let mut shape = [true; 6];
-        shape[2] = !self.planar;
-        if self.fix_epsilon {
-            shape[4] = false;
-            shape[5] = false;
-        }
         DynamicsParams {
             w0: self.w0,
             w1: self.w1,
             dt: self.dt,
             gamma_global: self.gamma_global,
             gamma_local: self.gamma_local,
-            free: FreeDofs {
-                shape,
-                local: !self.global_only,
-                planar: self.planar,
-                ..FreeDofs::default()
-            },
+            free: FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon),
             ..DynamicsParams::default()
         }
     }

@@ -109,6 +109,9 @@ pub struct DeformableSceneRoot(pub Handle<DeformableScene>);
 pub struct SceneInstance {
     /// The part entities, in the scene's order.
     pub parts: Vec<Entity>,
+    /// One entity per image data source ([`SceneImage`]), drawn as a backdrop by the render
+    /// plugin.
+    pub images: Vec<Entity>,
     /// The scene the parts were spawned from (cleared to respawn).
     pub spawned: Option<AssetId<DeformableScene>>,
     /// Why the scene failed to load, if it did.
@@ -120,6 +123,18 @@ pub struct SceneInstance {
 pub struct ScenePart {
     /// Index into [`SceneDef::parts`].
     pub index: usize,
+}
+
+/// An image data source of a scene, placed where the scene puts it (a child of the root). With the
+/// render plugins it is drawn as a textured quad in the world x–y plane, at z = 0 where the parts'
+/// projected outlines are fitted, so each fitted outline lies on its image edge.
+#[derive(Component, Clone, Debug)]
+#[require(Transform, Visibility)]
+pub struct SceneImage {
+    /// The source's name in the scene.
+    pub name: String,
+    /// The image and its potential.
+    pub potential: std::sync::Arc<crate::model::forces::image::ImagePotential>,
 }
 
 /// Put it on a camera to have it placed where a scene's `camera` says when the scene spawns.
@@ -240,9 +255,27 @@ pub fn spawn_scenes(
             }
             continue;
         };
-        for part in instance.parts.drain(..) {
-            commands.entity(part).try_despawn();
+        let instance = &mut *instance;
+        for e in instance.parts.drain(..).chain(instance.images.drain(..)) {
+            commands.entity(e).try_despawn();
         }
+        let mut images: Vec<_> = scene.data.images.iter().collect();
+        images.sort_by(|a, b| a.0.cmp(b.0));
+        instance.images = images
+            .into_iter()
+            .map(|(name, potential)| {
+                commands
+                    .spawn((
+                        Name::new(format!("image {name}")),
+                        SceneImage {
+                            name: name.clone(),
+                            potential: potential.clone(),
+                        },
+                        ChildOf(root),
+                    ))
+                    .id()
+            })
+            .collect();
         instance.parts = (0..scene.def.parts.len())
             .filter_map(|i| spawn_part(&mut commands, root, scene, i))
             .collect();
