@@ -1,0 +1,797 @@
+//! The physics-based modelling sandbox (the paper's Fig. 1 as an app): open a scene, pull models
+//! with mouse springs, tune them in an egui inspector, and watch fits converge.
+//!
+//! `cargo run --release --example sandbox [-- SCENE] [--screenshot FILE [--exit-after-steps N]]`
+//!
+//! SCENE is a `.dsq.ron` file under `assets/` (default `scenes/sandbox.dsq.ron`). Mouse: drag a
+//! model with the left button to pull it by a spring (drawn in red); drag empty space with the
+//! left or right button to orbit, with the middle button (or Shift + right) to pan; the wheel
+//! zooms. Keys: Space pause / run, S single step, R reset the selected part, F fit the selected
+//! part to convergence, Tab next part, arrows orbit, +/- zoom, Home frame the scene.
+use bevy::diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin};
+use bevy::ecs::schedule::ScheduleLabel;
+use bevy::input::mouse::{AccumulatedMouseMotion, AccumulatedMouseScroll};
+use bevy::picking::mesh_picking::MeshPickingPlugin;
+use bevy::prelude::*;
+use bevy_deformable_sq::io::write_model_obj;
+use bevy_deformable_sq::model::dynamics::ModelState;
+use bevy_deformable_sq::model::fit::{FitOptions, Stage, residuals};
+use bevy_deformable_sq::plugin::scene::{default_assets_dir, save_scene};
+use bevy_deformable_sq::plugin::{FitDriver, Scratch};
+use bevy_deformable_sq::prelude::*;
+use bevy_egui::input::EguiWantsInput;
+use bevy_egui::{EguiContexts, EguiPlugin, EguiPrimaryContextPass, egui};
+use std::collections::VecDeque;
+
+/// The schedule one simulation step runs in; the sandbox runs it `steps_per_frame` times a frame.
+#[derive(ScheduleLabel, Clone, Debug, PartialEq, Eq, Hash)]
+struct SimStep;
+
+/// Everything the inspector edits that is not a component.
+#[derive(Resource)]
+struct Sandbox {
+    scene: String,
+    scenes: Vec<String>,
+    steps_per_frame: u32,
+    running: bool,
+    single_steps: u32,
+    selected: Option<Entity>,
+    data_forces: bool,
+    show_images: bool,
+    message: String,
+    residual: VecDeque<f32>,
+    sim_steps: u64,
+    pending: Option<Action>,
+    root: Option<Entity>,
+}
+
+/// Work the inspector asks for that needs the whole world.
+#[derive(Clone, Debug)]
+enum Action {
+    Open(String),
+    SaveScene,
+    ExportObj,
+}
+
+/// The camera's orbit about a target.
+#[derive(Resource)]
+struct Orbit {
+    target: Vec3,
+    yaw: f32,
+    pitch: f32,
+    distance: f32,
+}
+
+/// The spring the mouse is pulling with: on which model, which entry of its `SpringForces`, and
+/// the plane (through the grabbed point, facing the camera) the cursor drags the anchor in.
+#[derive(Resource, Default)]
+struct Grab {
+    model: Option<Entity>,
+    spring: usize,
+    plane_point: Vec3,
+    max_stretch: f64,
+}
+
+/// Spring constant per unit of the model's squared size: strong enough to deform a membrane of
+/// the default stiffness visibly, and bounded with the stretch (below) so that no drag can blow
+/// the simulation up.
+const SPRING_GAIN: f64 = 2.0;
+/// Longest spring, in units of the model's size: beyond it the anchor is pulled back.
+const MAX_STRETCH: f64 = 1.5;
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let scene = args
+        .iter()
+        .find(|a| a.ends_with(".dsq.ron"))
+        .cloned()
+        .unwrap_or_else(|| "scenes/sandbox.dsq.ron".into());
+    let mut scenes: Vec<String> = std::fs::read_dir(default_assets_dir().join("scenes"))
+        .map(|d| {
+            d.filter_map(|e| e.ok())
+                .map(|e| format!("scenes/{}", e.file_name().to_string_lossy()))
+                .filter(|n| n.ends_with(".dsq.ron"))
+                .collect()
+        })
+        .unwrap_or_default();
+    scenes.sort();
+    let mut app = App::new();
+    app.add_plugins((
+        screenshot::default_plugins(),
+        MeshPickingPlugin,
+        FrameTimeDiagnosticsPlugin::default(),
+        EguiPlugin::default(),
+        DeformableSqPlugin::in_schedule(SimStep),
+        DeformableSqDebugPlugin,
+    ))
+    .insert_resource(Sandbox {
+        scene: scene.clone(),
+        scenes,
+        steps_per_frame: 2,
+        running: true,
+        single_steps: 0,
+        selected: None,
+        data_forces: true,
+        show_images: true,
+        message: String::new(),
+        residual: VecDeque::new(),
+        sim_steps: 0,
+        pending: Some(Action::Open(scene)),
+        root: None,
+    })
+    .insert_resource(Orbit {
+        target: Vec3::new(0.0, 0.5, 0.0),
+        yaw: 0.0,
+        pitch: 0.35,
+        distance: 7.0,
+    })
+    .init_resource::<Grab>()
+    .init_schedule(SimStep)
+    .add_systems(Startup, setup)
+    .add_systems(
+        Update,
+        (
+            actions,
+            keys,
+            orbit_camera,
+            drag_spring,
+            run_simulation,
+            track_residual,
+        )
+            .chain(),
+    )
+    .add_systems(EguiPrimaryContextPass, inspector)
+    .add_observer(grab)
+    .add_observer(release);
+    screenshot::maybe_add(&mut app);
+    app.run();
+}
+
+fn setup(mut commands: Commands) {
+    commands.spawn((
+        Camera3d::default(),
+        DeformableSceneCamera,
+        Transform::default(),
+    ));
+    commands.spawn((
+        DirectionalLight {
+            shadow_maps_enabled: true,
+            illuminance: 8000.0,
+            ..default()
+        },
+        Transform::from_xyz(3.0, 8.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y),
+    ));
+    commands.insert_resource(GlobalAmbientLight {
+        brightness: 300.0,
+        ..default()
+    });
+}
+
+/// Opens scenes, saves them and exports meshes (needs the whole world).
+fn actions(world: &mut World) {
+    let Some(action) = world.resource_mut::<Sandbox>().pending.take() else {
+        return;
+    };
+    let message = match action {
+        Action::Open(path) => {
+            if let Some(old) = world.resource::<Sandbox>().root {
+                world.despawn(old);
+            }
+            let handle = world.resource::<AssetServer>().load(path.clone());
+            let root = world.spawn(DeformableSceneRoot(handle)).id();
+            let mut s = world.resource_mut::<Sandbox>();
+            s.root = Some(root);
+            s.selected = None;
+            s.residual.clear();
+            s.scene = path.clone();
+            format!("opened {path}")
+        }
+        Action::SaveScene => {
+            let s = world.resource::<Sandbox>();
+            let out = default_assets_dir().join(
+                s.scene
+                    .replace(".dsq.ron", "_saved.dsq.ron")
+                    .replace("_saved_saved", "_saved"),
+            );
+            match s.root {
+                Some(root) => match save_scene(world, root, &out, &default_assets_dir(), true) {
+                    Ok(()) => format!("saved {}", out.display()),
+                    Err(e) => format!("save failed: {e}"),
+                },
+                None => "no scene to save".into(),
+            }
+        }
+        Action::ExportObj => export_selected(world),
+    };
+    world.resource_mut::<Sandbox>().message = message;
+}
+
+/// Writes the selected part as an OBJ mesh and its parameters as JSON next to the working
+/// directory.
+fn export_selected(world: &mut World) -> String {
+    let Some(e) = world.resource::<Sandbox>().selected else {
+        return "select a part to export".into();
+    };
+    let (Some(fem), Some(r), Some(s), Some(l)) = (
+        world.get::<FemMesh>(e),
+        world.get::<RigidState>(e),
+        world.get::<GlobalShape>(e),
+        world.get::<LocalDofs>(e),
+    ) else {
+        return "the part is gone".into();
+    };
+    let Some(tess) = fem.get() else {
+        return "the part has no mesh yet".into();
+    };
+    let state = ModelState {
+        translation: r.translation,
+        rotation: r.rotation,
+        shape: (*s).into(),
+        displacement: l.displacement.clone(),
+    };
+    let name = world
+        .get::<Name>(e)
+        .map(|n| n.as_str().replace(' ', "_"))
+        .unwrap_or_else(|| "part".into());
+    let (obj, json) = (format!("{name}.obj"), format!("{name}.json"));
+    let params = serde_json::json!({
+        "translation": state.translation.to_array(),
+        "rotation_xyzw": state.rotation.to_array(),
+        "shape": state.shape,
+        "nodes": tess.node_count(),
+    });
+    match write_model_obj(obj.as_ref(), tess, &state)
+        .map_err(|e| e.to_string())
+        .and_then(|()| {
+            std::fs::write(&json, params.to_string()).map_err(|e| format!("{json}: {e}"))
+        }) {
+        Ok(()) => format!("wrote {obj} and {json}"),
+        Err(e) => format!("export failed: {e}"),
+    }
+}
+
+/// Keyboard shortcuts (ignored while egui has the keyboard).
+fn keys(
+    input: Res<ButtonInput<KeyCode>>,
+    egui: Res<EguiWantsInput>,
+    mut sandbox: ResMut<Sandbox>,
+    mut orbit: ResMut<Orbit>,
+    mut controls: Query<(Entity, &mut SimControl)>,
+    instances: Query<&SceneInstance>,
+    mut commands: Commands,
+    ranges: Query<&RangeData>,
+) {
+    if egui.wants_any_keyboard_input() {
+        return;
+    }
+    if input.just_pressed(KeyCode::Space) {
+        sandbox.running = !sandbox.running;
+    }
+    if input.just_pressed(KeyCode::KeyS) {
+        sandbox.running = false;
+        sandbox.single_steps += 1;
+    }
+    if input.just_pressed(KeyCode::Tab) {
+        let parts: Vec<Entity> = instances.iter().flat_map(|i| i.parts.clone()).collect();
+        let next = match sandbox
+            .selected
+            .and_then(|s| parts.iter().position(|p| *p == s))
+        {
+            Some(i) => parts.get((i + 1) % parts.len()).copied(),
+            None => parts.first().copied(),
+        };
+        sandbox.selected = next;
+        sandbox.residual.clear();
+    }
+    if let Some(sel) = sandbox.selected {
+        if input.just_pressed(KeyCode::KeyR)
+            && let Ok((_, mut c)) = controls.get_mut(sel)
+        {
+            c.reset_requested = true;
+        }
+        if input.just_pressed(KeyCode::KeyF) {
+            sandbox.message = fit_to_convergence(&mut commands, sel, &ranges, &mut controls);
+        }
+    }
+    let step = 0.03;
+    if input.pressed(KeyCode::ArrowLeft) {
+        orbit.yaw -= step;
+    }
+    if input.pressed(KeyCode::ArrowRight) {
+        orbit.yaw += step;
+    }
+    if input.pressed(KeyCode::ArrowUp) {
+        orbit.pitch = (orbit.pitch + step).min(1.5);
+    }
+    if input.pressed(KeyCode::ArrowDown) {
+        orbit.pitch = (orbit.pitch - step).max(-1.5);
+    }
+    if input.pressed(KeyCode::Equal) || input.pressed(KeyCode::NumpadAdd) {
+        orbit.distance = (orbit.distance * 0.97).max(0.2);
+    }
+    if input.pressed(KeyCode::Minus) || input.pressed(KeyCode::NumpadSubtract) {
+        orbit.distance = (orbit.distance / 0.97).min(200.0);
+    }
+    if input.just_pressed(KeyCode::Home) {
+        *orbit = Orbit {
+            target: Vec3::new(0.0, 0.5, 0.0),
+            yaw: 0.0,
+            pitch: 0.35,
+            distance: 7.0,
+        };
+    }
+}
+
+/// Gives a range part a [`FitDriver`] that runs the fitter's stages to rest, and unpauses it.
+fn fit_to_convergence(
+    commands: &mut Commands,
+    part: Entity,
+    ranges: &Query<&RangeData>,
+    controls: &mut Query<(Entity, &mut SimControl)>,
+) -> String {
+    if ranges.get(part).is_err() {
+        return "only parts with range data are fitted to convergence".into();
+    }
+    let options = FitOptions::default();
+    commands.entity(part).insert(FitDriver::new(
+        options,
+        [Stage::Cover, Stage::Global, Stage::Joint],
+        options.max_steps as u64,
+    ));
+    if let Ok((_, mut c)) = controls.get_mut(part) {
+        c.paused = false;
+    }
+    "fitting to convergence".into()
+}
+
+/// Places the camera from the orbit; mouse drags on empty space orbit and pan, the wheel zooms.
+/// A scene's camera (placed on spawn) is taken over as the orbit's start.
+fn orbit_camera(
+    mut orbit: ResMut<Orbit>,
+    buttons: Res<ButtonInput<MouseButton>>,
+    keys: Res<ButtonInput<KeyCode>>,
+    motion: Res<AccumulatedMouseMotion>,
+    scroll: Res<AccumulatedMouseScroll>,
+    egui: Res<EguiWantsInput>,
+    grab: Res<Grab>,
+    mut camera: Single<&mut Transform, With<Camera3d>>,
+    placed: Query<&SceneInstance, Changed<SceneInstance>>,
+) {
+    if !placed.is_empty() {
+        // The scene moved the camera: orbit about what it looks at from there.
+        let forward = camera.forward();
+        let eye = camera.translation;
+        let distance = (eye - orbit.target).length().max(0.5);
+        orbit.target = eye + forward * distance;
+        orbit.distance = distance;
+        orbit.pitch = (-forward.y).asin();
+        orbit.yaw = (-forward.x).atan2(-forward.z);
+    }
+    if !egui.wants_any_pointer_input() && grab.model.is_none() {
+        let d = motion.delta;
+        let shift = keys.pressed(KeyCode::ShiftLeft) || keys.pressed(KeyCode::ShiftRight);
+        let pan =
+            buttons.pressed(MouseButton::Middle) || (shift && buttons.pressed(MouseButton::Right));
+        if pan {
+            let right = camera.right();
+            let up = camera.up();
+            let s = orbit.distance * 0.0015;
+            orbit.target += (-right * d.x + up * d.y) * s;
+        } else if buttons.pressed(MouseButton::Left) || buttons.pressed(MouseButton::Right) {
+            orbit.yaw -= d.x * 0.005;
+            orbit.pitch = (orbit.pitch + d.y * 0.005).clamp(-1.5, 1.5);
+        }
+        if scroll.delta.y != 0.0 {
+            orbit.distance =
+                (orbit.distance * (1.0 - 0.1 * scroll.delta.y.signum())).clamp(0.2, 200.0);
+        }
+    }
+    let dir = Vec3::new(
+        orbit.yaw.sin() * orbit.pitch.cos(),
+        orbit.pitch.sin(),
+        orbit.yaw.cos() * orbit.pitch.cos(),
+    );
+    **camera = Transform::from_translation(orbit.target + dir * orbit.distance)
+        .looking_at(orbit.target, Vec3::Y);
+}
+
+/// Left press on a model: a spring from the grabbed surface point (its nearest node's material
+/// coordinates) to the cursor.
+fn grab(
+    press: On<Pointer<Press>>,
+    mut grab: ResMut<Grab>,
+    mut sandbox: ResMut<Sandbox>,
+    mut models: Query<(
+        &FemMesh,
+        &Scratch,
+        &GlobalShape,
+        &mut SimControl,
+        Option<&mut SpringForces>,
+    )>,
+    mut commands: Commands,
+) {
+    if press.button != PointerButton::Primary || grab.model.is_some() {
+        return;
+    }
+    let entity = press.entity;
+    let Ok((fem, scratch, shape, mut control, springs)) = models.get_mut(entity) else {
+        return;
+    };
+    let (Some(tess), Some(hit)) = (fem.get(), press.hit.position) else {
+        return;
+    };
+    let x = scratch.node_positions();
+    let hit_d = hit.as_dvec3();
+    let Some(node) = (0..x.len()).min_by(|&a, &b| {
+        x[a].distance_squared(hit_d)
+            .total_cmp(&x[b].distance_squared(hit_d))
+    }) else {
+        return;
+    };
+    let size = shape.a.max(1e-3);
+    let [u, v] = tess.uv[node];
+    let spring = Spring {
+        u,
+        v,
+        anchor: x[node],
+        stiffness: SPRING_GAIN * size * size,
+    };
+    let index = match springs {
+        Some(mut s) => {
+            s.0.push(spring);
+            s.0.len() - 1
+        }
+        None => {
+            commands.entity(entity).insert(SpringForces(vec![spring]));
+            0
+        }
+    };
+    // A finished fit paused its model: pulling it wakes it, and the user takes over.
+    control.paused = false;
+    commands.entity(entity).remove::<FitDriver>();
+    *grab = Grab {
+        model: Some(entity),
+        spring: index,
+        plane_point: hit,
+        max_stretch: MAX_STRETCH * size,
+    };
+    sandbox.selected = Some(entity);
+}
+
+/// Moves the grab spring's anchor with the cursor, in the plane through the grabbed point facing
+/// the camera, no further than `max_stretch` from the grabbed point of the surface.
+fn drag_spring(
+    grab: Res<Grab>,
+    window: Single<&Window>,
+    camera: Single<(&Camera, &GlobalTransform)>,
+    mut models: Query<(&FemMesh, &Scratch, &mut SpringForces)>,
+) {
+    let Some(model) = grab.model else { return };
+    let Some(cursor) = window.cursor_position() else {
+        return;
+    };
+    let (camera, cam_tf) = *camera;
+    let Ok(ray) = camera.viewport_to_world(cam_tf, cursor) else {
+        return;
+    };
+    let Some(t) = ray.intersect_plane(grab.plane_point, InfinitePlane3d::new(cam_tf.forward()))
+    else {
+        return;
+    };
+    let target = ray.get_point(t).as_dvec3();
+    let Ok((fem, scratch, mut springs)) = models.get_mut(model) else {
+        return;
+    };
+    let Some(tess) = fem.get() else { return };
+    let x = scratch.node_positions();
+    let Some(spring) = springs.0.get_mut(grab.spring) else {
+        return;
+    };
+    if x.len() != tess.node_count() {
+        return;
+    }
+    let at = tess.locate(spring.u, spring.v).interpolate(|k| x[k]);
+    let pull = target - at;
+    spring.anchor = at + pull.clamp_length_max(grab.max_stretch);
+}
+
+/// Releasing the button removes the mouse spring.
+fn release(
+    up: On<Pointer<Release>>,
+    mut grab: ResMut<Grab>,
+    mut springs: Query<&mut SpringForces>,
+) {
+    if up.button != PointerButton::Primary {
+        return;
+    }
+    if let Some(model) = grab.model.take()
+        && let Ok(mut s) = springs.get_mut(model)
+        && grab.spring < s.0.len()
+    {
+        s.0.remove(grab.spring);
+    }
+}
+
+/// Runs `steps_per_frame` simulation steps while running, or the requested single steps.
+fn run_simulation(world: &mut World) {
+    let (running, n, single) = {
+        let s = world.resource::<Sandbox>();
+        (s.running, s.steps_per_frame, s.single_steps)
+    };
+    let steps = if running { n } else { single.min(1) };
+    for _ in 0..steps {
+        world.run_schedule(SimStep);
+    }
+    let mut s = world.resource_mut::<Sandbox>();
+    s.sim_steps += steps as u64;
+    if !running {
+        s.single_steps = s.single_steps.saturating_sub(steps);
+    }
+}
+
+/// Every 10 frames, the selected range part's RMS point-to-surface distance (a fraction of the
+/// data's bounding-box diagonal), for the inspector's plot.
+fn track_residual(
+    mut sandbox: ResMut<Sandbox>,
+    models: Query<(&FemMesh, &Scratch, &RangeData)>,
+    mut frame: Local<u32>,
+) {
+    *frame += 1;
+    if !frame.is_multiple_of(10) {
+        return;
+    }
+    let Some((fem, scratch, range)) = sandbox.selected.and_then(|e| models.get(e).ok()) else {
+        return;
+    };
+    let Some(tess) = fem.get() else { return };
+    if scratch.node_positions().len() != tess.node_count() {
+        return;
+    }
+    let r = residuals(tess, scratch.node_positions(), &range.forces.points);
+    sandbox.residual.push_back(r.rms as f32);
+    if sandbox.residual.len() > 300 {
+        sandbox.residual.pop_front();
+    }
+}
+
+/// The inspector window.
+fn inspector(
+    mut contexts: EguiContexts,
+    mut sandbox: ResMut<Sandbox>,
+    mut debug: ResMut<DebugRenderConfig>,
+    diagnostics: Res<DiagnosticsStore>,
+    instances: Query<&SceneInstance>,
+    names: Query<&Name>,
+    mut parts: Query<(
+        &mut GlobalShape,
+        &mut ModelSettings,
+        &mut SimControl,
+        Option<&mut RangeData>,
+        Option<&mut ImageData>,
+        Option<&FitDriver>,
+    )>,
+    mut images: Query<&mut Visibility, With<SceneImage>>,
+    mut saved_beta: Local<std::collections::HashMap<Entity, f64>>,
+) -> Result {
+    let ctx = contexts.ctx_mut()?;
+    let sandbox = &mut *sandbox;
+    egui::Window::new("Deformable superquadrics")
+        .default_pos([10.0, 10.0])
+        .default_width(300.0)
+        .show(ctx, |ui| {
+            let frame_ms = diagnostics
+                .get(&FrameTimeDiagnosticsPlugin::FRAME_TIME)
+                .and_then(|d| d.smoothed())
+                .unwrap_or(0.0);
+            ui.label(format!(
+                "frame {frame_ms:.1} ms · {} simulation steps",
+                sandbox.sim_steps
+            ));
+            ui.horizontal(|ui| {
+                egui::ComboBox::from_id_salt("scene")
+                    .selected_text(sandbox.scene.clone())
+                    .show_ui(ui, |ui| {
+                        for s in sandbox.scenes.clone() {
+                            if ui.selectable_label(s == sandbox.scene, &s).clicked() {
+                                sandbox.pending = Some(Action::Open(s));
+                            }
+                        }
+                    });
+                if ui.button("Save scene").clicked() {
+                    sandbox.pending = Some(Action::SaveScene);
+                }
+            });
+            for i in &instances {
+                if let Some(e) = &i.error {
+                    ui.colored_label(egui::Color32::LIGHT_RED, e);
+                }
+            }
+            if !sandbox.message.is_empty() {
+                ui.label(&sandbox.message);
+            }
+            ui.separator();
+            ui.horizontal(|ui| {
+                let label = if sandbox.running { "Pause" } else { "Run" };
+                if ui.button(label).clicked() {
+                    sandbox.running = !sandbox.running;
+                }
+                if ui.button("Step").clicked() {
+                    sandbox.running = false;
+                    sandbox.single_steps += 1;
+                }
+            });
+            ui.add(egui::Slider::new(&mut sandbox.steps_per_frame, 1..=20).text("steps per frame"));
+            ui.checkbox(&mut debug.points, "data points");
+            ui.checkbox(&mut debug.data_springs, "data springs");
+            ui.checkbox(&mut debug.user_springs, "mouse springs");
+            if ui.checkbox(&mut sandbox.show_images, "image").changed() {
+                for mut v in &mut images {
+                    *v = if sandbox.show_images {
+                        Visibility::Inherited
+                    } else {
+                        Visibility::Hidden
+                    };
+                }
+            }
+            if ui
+                .checkbox(&mut sandbox.data_forces, "data forces")
+                .changed()
+            {
+                for e in instances.iter().flat_map(|i| i.parts.clone()) {
+                    if let Ok((_, _, _, range, image, _)) = parts.get_mut(e) {
+                        let beta = match (range, image) {
+                            (Some(r), _) => &mut r.into_inner().forces.beta,
+                            (_, Some(im)) => &mut im.into_inner().forces.beta,
+                            _ => continue,
+                        };
+                        if sandbox.data_forces {
+                            *beta = saved_beta.remove(&e).unwrap_or(*beta);
+                        } else {
+                            saved_beta.insert(e, *beta);
+                            *beta = 0.0;
+                        }
+                    }
+                }
+            }
+            ui.separator();
+            ui.label("Parts");
+            for i in &instances {
+                for &e in &i.parts {
+                    let name = names.get(e).map(|n| n.to_string()).unwrap_or_default();
+                    if ui
+                        .selectable_label(sandbox.selected == Some(e), name)
+                        .clicked()
+                    {
+                        sandbox.selected = Some(e);
+                        sandbox.residual.clear();
+                    }
+                }
+            }
+            let Some(sel) = sandbox.selected else { return };
+            let Ok((mut shape, mut settings, mut control, range, _, driver)) = parts.get_mut(sel)
+            else {
+                return;
+            };
+            ui.separator();
+            let g = &mut *shape;
+            ui.add(egui::Slider::new(&mut g.a, 0.05..=3.0).text("a"));
+            ui.add(egui::Slider::new(&mut g.a1, 0.05..=1.0).text("a1"));
+            ui.add(egui::Slider::new(&mut g.a2, 0.05..=1.0).text("a2"));
+            ui.add(egui::Slider::new(&mut g.a3, 0.05..=1.0).text("a3"));
+            ui.add(egui::Slider::new(&mut g.e1, 0.1..=2.0).text("ε1"));
+            ui.add(egui::Slider::new(&mut g.e2, 0.1..=2.0).text("ε2"));
+            let s = &mut *settings;
+            ui.add(
+                egui::Slider::new(&mut s.w0, 0.0..=0.1)
+                    .logarithmic(true)
+                    .text("w0"),
+            );
+            ui.add(
+                egui::Slider::new(&mut s.w1, 0.0..=2.0)
+                    .logarithmic(true)
+                    .text("w1"),
+            );
+            ui.add(
+                egui::Slider::new(&mut s.gamma_global, 0.01..=10.0)
+                    .logarithmic(true)
+                    .text("γ global"),
+            );
+            ui.add(
+                egui::Slider::new(&mut s.gamma_local, 0.01..=10.0)
+                    .logarithmic(true)
+                    .text("γ local"),
+            );
+            ui.add(
+                egui::Slider::new(&mut s.dt, 0.001..=0.2)
+                    .logarithmic(true)
+                    .text("Δt"),
+            );
+            ui.add(egui::Slider::new(&mut s.reassign_every, 1..=1000).text("reassign every"));
+            ui.checkbox(&mut s.global_only, "global only");
+            ui.checkbox(&mut s.fix_epsilon, "fix ε");
+            ui.horizontal(|ui| {
+                if ui.button("Reset").clicked() {
+                    control.reset_requested = true;
+                }
+                ui.checkbox(&mut control.paused, "paused");
+                if ui.button("Export OBJ").clicked() {
+                    sandbox.pending = Some(Action::ExportObj);
+                }
+            });
+            if let Some(err) = &control.error {
+                ui.colored_label(egui::Color32::LIGHT_RED, err);
+            }
+            if let Some(d) = driver {
+                let state = if d.done {
+                    if d.converged {
+                        "fit at rest"
+                    } else {
+                        "fit stopped at its step cap"
+                    }
+                } else {
+                    "fitting…"
+                };
+                ui.label(format!("{state} ({} steps)", control.steps));
+            }
+            if range.is_some() {
+                ui.label("RMS distance to the data (fraction of the diagonal)");
+                plot(ui, &sandbox.residual);
+            }
+        });
+    egui::Window::new("Keys and mouse")
+        .default_open(false)
+        .anchor(egui::Align2::RIGHT_TOP, [-10.0, 10.0])
+        .show(ctx, |ui| {
+            for line in CHEAT_SHEET {
+                ui.label(*line);
+            }
+        });
+    Ok(())
+}
+
+/// The cheat sheet, also in README.md.
+const CHEAT_SHEET: &[&str] = &[
+    "Left drag on a model: pull it with a spring",
+    "Left / right drag on empty space: orbit",
+    "Middle drag or Shift + right drag: pan",
+    "Wheel or + / -: zoom; arrows: orbit; Home: reset view",
+    "Space: pause / run; S: single step",
+    "Tab: next part; R: reset part; F: fit part to convergence",
+];
+
+/// A line plot of `values` with its last value.
+fn plot(ui: &mut egui::Ui, values: &VecDeque<f32>) {
+    let (rect, _) = ui.allocate_exact_size(egui::vec2(280.0, 80.0), egui::Sense::hover());
+    let painter = ui.painter_at(rect);
+    painter.rect_filled(rect, 2.0, egui::Color32::from_gray(30));
+    let Some(max) = values.iter().copied().reduce(f32::max).filter(|m| *m > 0.0) else {
+        return;
+    };
+    let n = values.len().max(2) as f32 - 1.0;
+    let points: Vec<egui::Pos2> = values
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            egui::pos2(
+                rect.left() + rect.width() * i as f32 / n,
+                rect.bottom() - rect.height() * (v / max) * 0.95,
+            )
+        })
+        .collect();
+    painter.add(egui::Shape::line(
+        points,
+        egui::Stroke::new(1.5, egui::Color32::LIGHT_GREEN),
+    ));
+    if let Some(last) = values.back() {
+        painter.text(
+            rect.right_top() + egui::vec2(-4.0, 4.0),
+            egui::Align2::RIGHT_TOP,
+            format!("{last:.4} (max {max:.4})"),
+            egui::FontId::proportional(11.0),
+            egui::Color32::WHITE,
+        );
+    }
+}
+
+#[path = "support/screenshot.rs"]
+mod screenshot;

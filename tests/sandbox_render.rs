@@ -1,0 +1,111 @@
+//! The sandbox in a real renderer: run it under Xvfb with Mesa's CPU Vulkan driver, save a
+//! screenshot, and check that the models are in it (their part colours where the parts are, not
+//! a blank or black frame). Needs `xvfb-run` and a Vulkan driver; CI (`.ci/run`) installs them and
+//! sets `BDSQ_RENDER_TEST=1`, which makes their absence a failure rather than a skip.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn example(name: &str) -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    let dir = exe.parent().and_then(Path::parent).unwrap();
+    dir.join("examples")
+        .join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
+}
+
+/// Chromaticity (r, g, b) / (r + g + b) of a colour.
+fn chroma(c: [f32; 3]) -> [f32; 3] {
+    let s = (c[0] + c[1] + c[2]).max(1e-6);
+    c.map(|x| x / s)
+}
+
+#[test]
+fn the_sandbox_renders_its_models() {
+    let required = std::env::var("BDSQ_RENDER_TEST").is_ok_and(|v| v == "1");
+    let has_xvfb = Command::new("sh")
+        .args(["-c", "command -v xvfb-run"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !has_xvfb {
+        assert!(!required, "BDSQ_RENDER_TEST=1 but xvfb-run is missing");
+        eprintln!("skipped: no xvfb-run (install xvfb and mesa-vulkan-drivers to run this test)");
+        return;
+    }
+    let out = std::env::temp_dir().join(format!("bdsq-sandbox-{}.png", std::process::id()));
+    let _ = std::fs::remove_file(&out);
+    let status = Command::new("timeout")
+        .args(["600", "xvfb-run", "-a", "-s", "-screen 0 1280x720x24"])
+        .arg(example("sandbox"))
+        .args(["scenes/sandbox.dsq.ron", "--screenshot"])
+        .arg(&out)
+        .args(["--exit-after-steps", "60"])
+        .env("BEVY_ASSET_ROOT", env!("CARGO_MANIFEST_DIR"))
+        .env("WGPU_BACKEND", "vulkan")
+        .output()
+        .expect("run the sandbox");
+    assert!(
+        status.status.success() && out.exists(),
+        "the sandbox did not save a screenshot: {}\n{}",
+        status.status,
+        String::from_utf8_lossy(&status.stderr)
+            .lines()
+            .filter(|l| l.contains("ERROR") || l.contains("panicked"))
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+    let img = image::open(&out).expect("a PNG").to_rgb32f();
+    assert_eq!((img.width(), img.height()), (1280, 720));
+    // The parts in a row across the middle of the frame, each in its palette colour (shaded and
+    // tone-mapped, so each pixel is classed by the nearest chromaticity, grey included).
+    let palette = [
+        ("ellipsoid", [0.90, 0.45, 0.20]),
+        ("rounded box", [0.25, 0.55, 0.90]),
+        ("cylinder", [0.35, 0.75, 0.35]),
+        ("octahedron", [0.85, 0.30, 0.55]),
+        ("bunny", [0.95, 0.80, 0.25]),
+        ("grey", [0.5, 0.5, 0.5]),
+    ];
+    let mut lit = 0usize;
+    let mut counts = [0usize; 6];
+    for (x, y, p) in img.enumerate_pixels() {
+        let c = [p.0[0], p.0[1], p.0[2]];
+        let bright = c.iter().sum::<f32>();
+        if bright > 0.45 {
+            lit += 1;
+        }
+        if !(320..1280).contains(&x) || !(150..600).contains(&y) || bright < 0.3 {
+            continue;
+        }
+        let ch = chroma(c);
+        let dist = |colour: [f32; 3]| -> f32 {
+            let want = chroma(colour);
+            (0..3)
+                .map(|k| (ch[k] - want[k]).powi(2))
+                .sum::<f32>()
+                .sqrt()
+        };
+        let nearest = (0..palette.len())
+            .min_by(|&a, &b| dist(palette[a].1).total_cmp(&dist(palette[b].1)))
+            .unwrap();
+        if dist(palette[nearest].1) < 0.15 {
+            counts[nearest] += 1;
+        }
+    }
+    let total = (img.width() * img.height()) as usize;
+    assert!(
+        lit > total / 50,
+        "the frame is (nearly) black: {lit} lit pixels"
+    );
+    assert!(
+        lit < total * 9 / 10,
+        "the frame is (nearly) blank: {lit} lit pixels"
+    );
+    // The ellipsoid sits partly under the inspector; the other four must show.
+    for ((name, _), n) in palette[1..5].iter().zip(&counts[1..5]) {
+        assert!(
+            *n > 1500,
+            "the {name} is not visible: {n} pixels of its colour ({counts:?})"
+        );
+    }
+    let _ = std::fs::remove_file(&out);
+}
