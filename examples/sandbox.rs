@@ -1,9 +1,10 @@
 //! The physics-based modelling sandbox (the paper's Fig. 1 as an app): open a scene, pull models
 //! with mouse springs, tune them in an egui inspector, and watch fits converge.
 //!
-//! `cargo run --release --example sandbox [-- SCENE] [--screenshot FILE [--exit-after-steps N]]`
+//! `cargo run --release --example sandbox [-- SCENE] [--potential] [--wireframe] [--screenshot FILE [--exit-after-steps N]]`
 //!
-//! SCENE is a `.dsq.ron` file under `assets/` (default `scenes/sandbox.dsq.ron`). Mouse: drag a
+//! SCENE is a `.dsq.ron` file under `assets/` (default `scenes/sandbox.dsq.ron`); `--potential`
+//! and `--wireframe` start with those display toggles on. Mouse: drag a
 //! model with the left button to pull it by a spring (drawn in red); drag empty space with the
 //! left or right button to orbit, with the middle button (or Shift + right) to pan; the wheel
 //! zooms. Keys: Space pause / run, S single step, R reset the selected part, F fit the selected
@@ -11,6 +12,7 @@
 use bevy::diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin};
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::input::mouse::{AccumulatedMouseMotion, AccumulatedMouseScroll};
+use bevy::pbr::wireframe::{Wireframe, WireframePlugin};
 use bevy::picking::mesh_picking::MeshPickingPlugin;
 use bevy::prelude::*;
 use bevy_deformable_sq::io::write_model_obj;
@@ -38,6 +40,8 @@ struct Sandbox {
     selected: Option<Entity>,
     data_forces: bool,
     show_images: bool,
+    show_potential: bool,
+    wireframe: bool,
     message: String,
     residual: VecDeque<f32>,
     sim_steps: u64,
@@ -99,6 +103,7 @@ fn main() {
     app.add_plugins((
         screenshot::default_plugins(),
         MeshPickingPlugin,
+        WireframePlugin::default(),
         FrameTimeDiagnosticsPlugin::default(),
         EguiPlugin::default(),
         DeformableSqPlugin::in_schedule(SimStep),
@@ -113,6 +118,8 @@ fn main() {
         selected: None,
         data_forces: true,
         show_images: true,
+        show_potential: args.iter().any(|a| a == "--potential"),
+        wireframe: args.iter().any(|a| a == "--wireframe"),
         message: String::new(),
         residual: VecDeque::new(),
         sim_steps: 0,
@@ -137,6 +144,7 @@ fn main() {
             drag_spring,
             run_simulation,
             track_residual,
+            apply_display,
         )
             .chain(),
     )
@@ -512,6 +520,26 @@ fn release(
     }
 }
 
+/// Newly spawned parts and images (a scene opened or reloaded) take the display toggles.
+fn apply_display(
+    sandbox: Res<Sandbox>,
+    mut commands: Commands,
+    parts: Query<Entity, Added<ScenePart>>,
+    mut images: Query<(&mut SceneImage, &mut Visibility), Added<SceneImage>>,
+) {
+    if sandbox.wireframe {
+        for e in &parts {
+            commands.entity(e).insert(Wireframe);
+        }
+    }
+    for (mut image, mut visibility) in &mut images {
+        image.show_potential = sandbox.show_potential;
+        if !sandbox.show_images {
+            *visibility = Visibility::Hidden;
+        }
+    }
+}
+
 /// Runs `steps_per_frame` simulation steps while running, or the requested single steps.
 fn run_simulation(world: &mut World) {
     let (running, n, single) = {
@@ -571,6 +599,8 @@ fn inspector(
         Option<&FitDriver>,
     )>,
     mut images: Query<&mut Visibility, With<SceneImage>>,
+    mut scene_images: Query<&mut SceneImage>,
+    mut commands: Commands,
     mut saved_beta: Local<std::collections::HashMap<Entity, f64>>,
 ) -> Result {
     let ctx = contexts.ctx_mut()?;
@@ -624,6 +654,26 @@ fn inspector(
             ui.checkbox(&mut debug.points, "data points");
             ui.checkbox(&mut debug.data_springs, "data springs");
             ui.checkbox(&mut debug.user_springs, "mouse springs");
+            if ui
+                .checkbox(
+                    &mut sandbox.show_potential,
+                    "potential P instead of the image",
+                )
+                .changed()
+            {
+                for mut image in &mut scene_images {
+                    image.show_potential = sandbox.show_potential;
+                }
+            }
+            if ui.checkbox(&mut sandbox.wireframe, "wireframe").changed() {
+                for e in instances.iter().flat_map(|i| i.parts.clone()) {
+                    if sandbox.wireframe {
+                        commands.entity(e).insert(Wireframe);
+                    } else {
+                        commands.entity(e).remove::<Wireframe>();
+                    }
+                }
+            }
             if ui.checkbox(&mut sandbox.show_images, "image").changed() {
                 for mut v in &mut images {
                     *v = if sandbox.show_images {

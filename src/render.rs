@@ -36,19 +36,31 @@ pub const PALETTE: [Color; 8] = [
 pub(crate) fn build(app: &mut App) {
     app.register_type::<ModelColor>().add_systems(
         PostUpdate,
-        (attach_meshes, write_meshes, attach_image_backdrops)
+        (
+            attach_meshes,
+            write_meshes,
+            refresh_image_backdrops,
+            attach_image_backdrops,
+        )
             .chain()
             .run_if(resource_exists::<Assets<Mesh>>),
     );
 }
 
-/// The image of a [`SceneImage`] as an sRGB texture (its luminance as grey, row 0 at the top).
+/// The image of a [`SceneImage`] as an sRGB texture (its luminance as grey, row 0 at the top),
+/// or with `show_potential` its potential P as grey (white at P_ref and above).
 pub fn backdrop_texture(
     potential: &crate::model::forces::image::ImagePotential,
+    show_potential: bool,
 ) -> bevy::image::Image {
     use bevy::render::render_resource::{Extent3d, TextureDimension, TextureFormat};
-    let data: Vec<u8> = potential
-        .luminance()
+    let p_ref = potential.p_ref().max(f64::MIN_POSITIVE);
+    let values: Vec<f64> = if show_potential {
+        potential.potential().iter().map(|p| p / p_ref).collect()
+    } else {
+        potential.luminance().to_vec()
+    };
+    let data: Vec<u8> = values
         .iter()
         .flat_map(|l| {
             let g = (l.clamp(0.0, 1.0) * 255.0).round() as u8;
@@ -68,6 +80,18 @@ pub fn backdrop_texture(
     )
 }
 
+/// A [`SceneImage`] whose display changed is drawn anew (its quad and texture rebuilt).
+pub fn refresh_image_backdrops(
+    mut commands: Commands,
+    changed: Query<Entity, (Changed<SceneImage>, With<Mesh3d>)>,
+) {
+    for e in &changed {
+        commands
+            .entity(e)
+            .remove::<(Mesh3d, MeshMaterial3d<StandardMaterial>)>();
+    }
+}
+
 /// Draws every [`SceneImage`] that has no mesh yet as an unlit textured quad covering the image's
 /// world rectangle (see [`ImageFrame`](crate::model::forces::image::ImageFrame)).
 pub fn attach_image_backdrops(
@@ -85,7 +109,7 @@ pub fn attach_image_backdrops(
         let frame = p.frame();
         let pitch = frame.extent / p.width().max(p.height()) as f64;
         let size = Vec2::new(p.width() as f32, p.height() as f32) * pitch as f32;
-        let texture = textures.add(backdrop_texture(p));
+        let texture = textures.add(backdrop_texture(p, image.show_potential));
         commands.entity(entity).insert((
             Mesh3d(meshes.add(Rectangle::from_size(size))),
             MeshMaterial3d(materials.add(StandardMaterial {

@@ -135,6 +135,8 @@ pub struct SceneImage {
     pub name: String,
     /// The image and its potential.
     pub potential: std::sync::Arc<crate::model::forces::image::ImagePotential>,
+    /// Draw the potential P (eq. 20, as grey up to P_ref) instead of the image.
+    pub show_potential: bool,
 }
 
 /// Put it on a camera to have it placed where a scene's `camera` says when the scene spawns.
@@ -270,6 +272,7 @@ pub fn spawn_scenes(
                         SceneImage {
                             name: name.clone(),
                             potential: potential.clone(),
+                            show_potential: false,
                         },
                         ChildOf(root),
                     ))
