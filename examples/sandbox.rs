@@ -8,16 +8,19 @@
 //! model with the left button to pull it by a spring (drawn in red); drag empty space with the
 //! left or right button to orbit, with the middle button (or Shift + right) to pan; the wheel
 //! zooms. Keys: Space pause / run, S single step, R reset the selected part, F fit the selected
-//! part to convergence, Tab next part, arrows orbit, +/- zoom, Home frame the scene.
+//! part to convergence, Tab next part, N place a new part with four clicks, arrows orbit, +/-
+//! zoom, Home frame the scene.
 use bevy::diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin};
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::input::mouse::{AccumulatedMouseMotion, AccumulatedMouseScroll};
+use bevy::math::DVec3;
 use bevy::pbr::wireframe::{Wireframe, WireframePlugin};
 use bevy::picking::mesh_picking::MeshPickingPlugin;
 use bevy::prelude::*;
 use bevy_deformable_sq::io::write_model_obj;
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fit::{FitOptions, Stage, residuals};
+use bevy_deformable_sq::model::image_fit::ellipsoid_from_points;
 use bevy_deformable_sq::plugin::scene::{default_assets_dir, save_scene};
 use bevy_deformable_sq::plugin::{FitDriver, Scratch};
 use bevy_deformable_sq::prelude::*;
@@ -47,6 +50,8 @@ struct Sandbox {
     sim_steps: u64,
     pending: Option<Action>,
     root: Option<Entity>,
+    /// Points picked so far while placing a new part (`None`: not placing).
+    placing: Option<Vec<Vec3>>,
 }
 
 /// Work the inspector asks for that needs the whole world.
@@ -66,22 +71,16 @@ struct Orbit {
     distance: f32,
 }
 
-/// The spring the mouse is pulling with: on which model, which entry of its `SpringForces`, and
-/// the plane (through the grabbed point, facing the camera) the cursor drags the anchor in.
+/// The spring the mouse is pulling with: on which model, which entry of its `SpringForces`, the
+/// plane (through the grabbed point, facing the camera) the cursor drags the anchor in, and the
+/// model's scale (see [`Spring::grab`] and [`Spring::pull_towards`]).
 #[derive(Resource, Default)]
 struct Grab {
     model: Option<Entity>,
     spring: usize,
     plane_point: Vec3,
-    max_stretch: f64,
+    scale: f64,
 }
-
-/// Spring constant per unit of the model's squared size: strong enough to deform a membrane of
-/// the default stiffness visibly, and bounded with the stretch (below) so that no drag can blow
-/// the simulation up.
-const SPRING_GAIN: f64 = 2.0;
-/// Longest spring, in units of the model's size: beyond it the anchor is pulled back.
-const MAX_STRETCH: f64 = 1.5;
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -125,6 +124,7 @@ fn main() {
         sim_steps: 0,
         pending: Some(Action::Open(scene)),
         root: None,
+        placing: None,
     })
     .insert_resource(Orbit {
         target: Vec3::new(0.0, 0.5, 0.0),
@@ -142,6 +142,7 @@ fn main() {
             keys,
             orbit_camera,
             drag_spring,
+            place_part,
             run_simulation,
             track_residual,
             apply_display,
@@ -279,6 +280,13 @@ fn keys(
         sandbox.running = false;
         sandbox.single_steps += 1;
     }
+    if input.just_pressed(KeyCode::KeyN) {
+        sandbox.placing = Some(Vec::new());
+        sandbox.message = PLACING_HELP.into();
+    }
+    if input.just_pressed(KeyCode::Escape) {
+        sandbox.placing = None;
+    }
     if input.just_pressed(KeyCode::Tab) {
         let parts: Vec<Entity> = instances.iter().flat_map(|i| i.parts.clone()).collect();
         let next = match sandbox
@@ -362,6 +370,7 @@ fn orbit_camera(
     scroll: Res<AccumulatedMouseScroll>,
     egui: Res<EguiWantsInput>,
     grab: Res<Grab>,
+    sandbox: Res<Sandbox>,
     mut camera: Single<&mut Transform, With<Camera3d>>,
     placed: Query<&SceneInstance, Changed<SceneInstance>>,
 ) {
@@ -385,7 +394,9 @@ fn orbit_camera(
             let up = camera.up();
             let s = orbit.distance * 0.0015;
             orbit.target += (-right * d.x + up * d.y) * s;
-        } else if buttons.pressed(MouseButton::Left) || buttons.pressed(MouseButton::Right) {
+        } else if (buttons.pressed(MouseButton::Left) && sandbox.placing.is_none())
+            || buttons.pressed(MouseButton::Right)
+        {
             orbit.yaw -= d.x * 0.005;
             orbit.pitch = (orbit.pitch + d.y * 0.005).clamp(-1.5, 1.5);
         }
@@ -413,36 +424,27 @@ fn grab(
         &FemMesh,
         &Scratch,
         &GlobalShape,
+        &ModelSettings,
         &mut SimControl,
         Option<&mut SpringForces>,
     )>,
     mut commands: Commands,
 ) {
-    if press.button != PointerButton::Primary || grab.model.is_some() {
+    if press.button != PointerButton::Primary || grab.model.is_some() || sandbox.placing.is_some() {
         return;
     }
     let entity = press.entity;
-    let Ok((fem, scratch, shape, mut control, springs)) = models.get_mut(entity) else {
+    let Ok((fem, scratch, shape, settings, mut control, springs)) = models.get_mut(entity) else {
         return;
     };
     let (Some(tess), Some(hit)) = (fem.get(), press.hit.position) else {
         return;
     };
-    let x = scratch.node_positions();
-    let hit_d = hit.as_dvec3();
-    let Some(node) = (0..x.len()).min_by(|&a, &b| {
-        x[a].distance_squared(hit_d)
-            .total_cmp(&x[b].distance_squared(hit_d))
-    }) else {
-        return;
-    };
     let size = shape.a.max(1e-3);
-    let [u, v] = tess.uv[node];
-    let spring = Spring {
-        u,
-        v,
-        anchor: x[node],
-        stiffness: SPRING_GAIN * size * size,
+    let stiffness = Spring::mouse_stiffness(settings, size);
+    let Some(spring) = Spring::grab(tess, scratch.node_positions(), hit.as_dvec3(), stiffness)
+    else {
+        return;
     };
     let index = match springs {
         Some(mut s) => {
@@ -461,13 +463,13 @@ fn grab(
         model: Some(entity),
         spring: index,
         plane_point: hit,
-        max_stretch: MAX_STRETCH * size,
+        scale: size,
     };
     sandbox.selected = Some(entity);
 }
 
 /// Moves the grab spring's anchor with the cursor, in the plane through the grabbed point facing
-/// the camera, no further than `max_stretch` from the grabbed point of the surface.
+/// the camera (clamped by [`Spring::pull_towards`]).
 fn drag_spring(
     grab: Res<Grab>,
     window: Single<&Window>,
@@ -491,16 +493,9 @@ fn drag_spring(
         return;
     };
     let Some(tess) = fem.get() else { return };
-    let x = scratch.node_positions();
-    let Some(spring) = springs.0.get_mut(grab.spring) else {
-        return;
-    };
-    if x.len() != tess.node_count() {
-        return;
+    if let Some(spring) = springs.0.get_mut(grab.spring) {
+        spring.pull_towards(tess, scratch.node_positions(), target, grab.scale);
     }
-    let at = tess.locate(spring.u, spring.v).interpolate(|k| x[k]);
-    let pull = target - at;
-    spring.anchor = at + pull.clamp_length_max(grab.max_stretch);
 }
 
 /// Releasing the button removes the mouse spring.
@@ -538,6 +533,80 @@ fn apply_display(
             *visibility = Visibility::Hidden;
         }
     }
+}
+
+const PLACING_HELP: &str = "New part: click both ends of its major axis, then both ends of its \
+minor axis, on the ground (y = 0) or on the image plane (z = 0) when the scene has an image. Esc cancels.";
+
+/// Placing a new part as the paper's user does (Fig. 6(a)): four clicks on the ground plane, or
+/// on the image plane when the scene has an image, give both ends of the major axis and of the
+/// minor axis; the part (an ellipsoid, no data) is spawned under the scene root.
+fn place_part(
+    mut sandbox: ResMut<Sandbox>,
+    buttons: Res<ButtonInput<MouseButton>>,
+    egui: Res<EguiWantsInput>,
+    window: Single<&Window>,
+    camera: Single<(&Camera, &GlobalTransform)>,
+    images: Query<(), With<SceneImage>>,
+    mut instances: Query<&mut SceneInstance>,
+    mut gizmos: Gizmos,
+    mut commands: Commands,
+) {
+    let normal = if images.is_empty() { Vec3::Y } else { Vec3::Z };
+    let Some(points) = sandbox.placing.as_mut() else {
+        return;
+    };
+    for (i, p) in points.iter().enumerate() {
+        let colour = if i < 2 {
+            Color::srgb(1.0, 0.3, 0.3)
+        } else {
+            Color::srgb(0.3, 0.6, 1.0)
+        };
+        gizmos.sphere(Isometry3d::from_translation(*p), 0.04, colour);
+    }
+    if !buttons.just_pressed(MouseButton::Left) || egui.wants_any_pointer_input() {
+        return;
+    }
+    let (camera, cam_tf) = *camera;
+    let Some(cursor) = window.cursor_position() else {
+        return;
+    };
+    let Ok(ray) = camera.viewport_to_world(cam_tf, cursor) else {
+        return;
+    };
+    let Some(t) = ray.intersect_plane(Vec3::ZERO, InfinitePlane3d::new(normal)) else {
+        return;
+    };
+    points.push(ray.get_point(t));
+    if points.len() < 4 {
+        return;
+    }
+    let p: [DVec3; 4] = std::array::from_fn(|i| points[i].as_dvec3());
+    sandbox.placing = None;
+    let Some((translation, rotation, shape)) = ellipsoid_from_points(p, normal.as_dvec3()) else {
+        sandbox.message = "both axes need a length: the part was not placed".into();
+        return;
+    };
+    let Some(root) = sandbox.root else { return };
+    let Ok(mut instance) = instances.get_mut(root) else {
+        return;
+    };
+    let name = format!("part {}", instance.parts.len() + 1);
+    let e = commands
+        .spawn((
+            Name::new(name.clone()),
+            GlobalShape::from(shape),
+            RigidState {
+                translation,
+                rotation,
+            },
+            FemMesh::new(31),
+            ChildOf(root),
+        ))
+        .id();
+    instance.parts.push(e);
+    sandbox.selected = Some(e);
+    sandbox.message = format!("placed {name}");
 }
 
 /// Runs `steps_per_frame` simulation steps while running, or the requested single steps.
@@ -631,6 +700,10 @@ fn inspector(
                     sandbox.pending = Some(Action::SaveScene);
                 }
             });
+            if ui.button("New part (4 clicks)").clicked() {
+                sandbox.placing = Some(Vec::new());
+                sandbox.message = PLACING_HELP.into();
+            }
             for i in &instances {
                 if let Some(e) = &i.error {
                     ui.colored_label(egui::Color32::LIGHT_RED, e);
@@ -807,6 +880,7 @@ const CHEAT_SHEET: &[&str] = &[
     "Wheel or + / -: zoom; arrows: orbit; Home: reset view",
     "Space: pause / run; S: single step",
     "Tab: next part; R: reset part; F: fit part to convergence",
+    "N: new part from four clicks (major axis ends, minor axis ends); Esc: cancel",
 ];
 
 /// A line plot of `values` with its last value.

@@ -702,6 +702,28 @@ fn relative_path(target: &Path, base: &Path) -> PathBuf {
 }
 
 impl PartDef {
+    /// A part with no data and every setting at its default, a unit sphere at the origin.
+    pub fn new(name: impl Into<String>) -> Self {
+        Self {
+            name: name.into(),
+            placement: PartPlacement::Pose {
+                translation: [0.0; 3],
+                rotation: Rotation::default(),
+                shape: SuperquadricParams::default(),
+            },
+            k: default_k(),
+            w0: default_w0(),
+            w1: default_w1(),
+            damping: Damping::default(),
+            dt: default_dt(),
+            reassign_every: default_reassign(),
+            free: Freedoms::default(),
+            forces: Forces::Free,
+            fit: FitSettings::default(),
+            local: None,
+        }
+    }
+
     fn validate(
         &self,
         file: &Path,

@@ -538,6 +538,48 @@ fn a_scene_saved_from_the_app_loads_back_bit_for_bit() {
 }
 
 #[test]
+fn a_model_added_under_the_root_is_saved_as_a_new_part() {
+    let dir = scratch("added");
+    std::fs::copy(shipped("mug"), dir.join("mug.dsq.ron")).unwrap();
+    let mut app = scene_app(&dir);
+    let root = load(&mut app, "mug.dsq.ron");
+    let rigid = RigidState {
+        translation: DVec3::new(0.1 + 0.2, -2.0, 1.0 / 3.0),
+        rotation: DQuat::from_rotation_y(0.7),
+    };
+    let shape = GlobalShape {
+        a: 0.4,
+        a1: 1.0,
+        a2: 0.5,
+        a3: 0.25,
+        e1: 0.3,
+        e2: 1.9,
+    };
+    app.world_mut().spawn((
+        Name::new("placed"),
+        shape,
+        rigid,
+        FemMesh::new(7),
+        ChildOf(root),
+    ));
+    for _ in 0..3 {
+        app.world_mut().run_schedule(Step);
+    }
+    save_scene(app.world(), root, &dir.join("more.dsq.ron"), &dir, false).unwrap();
+    let (def, _) = SceneDef::load_file(&dir.join("more.dsq.ron")).unwrap();
+    assert_eq!(def.parts.len(), 2);
+    assert_eq!(def.parts[1].name, "placed");
+    assert_eq!(def.parts[1].k, 7);
+    assert_eq!(def.parts[1].forces, bevy_deformable_sq::scene::Forces::Free);
+    let mut again = scene_app(&dir);
+    let root2 = load(&mut again, "more.dsq.ron");
+    let e = parts(&again, root2)[1];
+    // A part with no forces keeps its pose and shape bit for bit.
+    assert_eq!(*again.world().get::<RigidState>(e).unwrap(), rigid);
+    assert_eq!(*again.world().get::<GlobalShape>(e).unwrap(), shape);
+}
+
+#[test]
 fn a_bad_scene_is_logged_and_the_app_keeps_running() {
     let dir = scratch("badapp");
     std::fs::write(

@@ -131,23 +131,12 @@ impl PartAxes {
     /// The pose and shape this placement gives: the model's z axis along the major axis, its
     /// x axis along the minor one, its y axis out of the image; ε1 = ε2 = 1.
     pub fn pose(&self) -> (DVec3, DQuat, SuperquadricParams) {
-        let m = self.major.normalize();
-        let ez = DVec3::new(m.x, m.y, 0.0);
-        let ex = DVec3::new(-m.y, m.x, 0.0);
-        let ey = ez.cross(ex);
-        let rotation = DQuat::from_mat3(&DMat3::from_cols(ex, ey, ez)).normalize();
-        let major = self.major.length();
-        let minor = self.minor.min(major);
-        let shape = SuperquadricParams {
-            a: major,
-            a1: minor / major,
-            a2: minor / major,
-            a3: 1.0,
-            e1: 1.0,
-            e2: 1.0,
-        }
-        .normalized();
-        (self.center.extend(0.0), rotation, shape)
+        ellipsoid_pose(
+            self.center.extend(0.0),
+            self.major.extend(0.0),
+            self.minor,
+            DVec3::Z,
+        )
     }
 
     /// A model in this placement with zero local displacement.
@@ -155,6 +144,49 @@ impl PartAxes {
         let (c, r, s) = self.pose();
         ModelState::new(tess, c, r, s)
     }
+}
+
+/// The ellipsoid a user places as in the paper's Fig. 6(a), in any plane: centred on `center`,
+/// its model z axis along `major` (the half-axis vector, in the plane), its x axis along the minor
+/// axis of half-length `minor`, its y axis along the plane's unit `normal`; the depth semi-axis is
+/// the minor one, ε1 = ε2 = 1.
+pub fn ellipsoid_pose(
+    center: DVec3,
+    major: DVec3,
+    minor: f64,
+    normal: DVec3,
+) -> (DVec3, DQuat, SuperquadricParams) {
+    let ez = major.normalize();
+    let ex = normal.cross(ez);
+    let ey = ez.cross(ex);
+    let rotation = DQuat::from_mat3(&DMat3::from_cols(ex, ey, ez)).normalize();
+    let major = major.length();
+    let minor = minor.min(major);
+    let shape = SuperquadricParams {
+        a: major,
+        a1: minor / major,
+        a2: minor / major,
+        a3: 1.0,
+        e1: 1.0,
+        e2: 1.0,
+    }
+    .normalized();
+    (center, rotation, shape)
+}
+
+/// The placement of [`ellipsoid_pose`] from four points in a plane: both ends of the major axis,
+/// then both ends of the minor axis (projected into the plane through their mean with unit
+/// `normal`); `None` when an axis has no length.
+pub fn ellipsoid_from_points(
+    points: [DVec3; 4],
+    normal: DVec3,
+) -> Option<(DVec3, DQuat, SuperquadricParams)> {
+    let flat = |v: DVec3| v - normal * v.dot(normal);
+    let center = (points[0] + points[1] + points[2] + points[3]) / 4.0;
+    let major = flat(points[1] - points[0]) / 2.0;
+    let minor = flat(points[3] - points[2]).length() / 2.0;
+    let ok = major.is_finite() && minor.is_finite() && major.length() > 1e-9 && minor > 1e-9;
+    ok.then(|| ellipsoid_pose(center, major, minor, normal.normalize()))
 }
 
 /// A 4-connected region of foreground pixels.
@@ -557,6 +589,33 @@ pub fn silhouette_iou(potential: &ImagePotential, parts: &[(&Tessellation, &[DVe
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn four_points_on_the_ground_place_the_ellipsoid_they_span() {
+        // Major axis along x (length 4), minor along z (length 1), on the ground y = 0.
+        let pts = [
+            DVec3::new(-2.0, 0.0, 0.0),
+            DVec3::new(2.0, 0.0, 0.0),
+            DVec3::new(0.0, 0.0, -0.5),
+            DVec3::new(0.0, 0.0, 0.5),
+        ];
+        let (c, r, s) = ellipsoid_from_points(pts, DVec3::Y).unwrap();
+        assert!(c.length() < 1e-12);
+        assert!(
+            (r * DVec3::Z - DVec3::X).length() < 1e-12,
+            "model z along the major axis"
+        );
+        assert!(
+            (r * DVec3::Y - DVec3::Y).length() < 1e-12,
+            "model y along the normal"
+        );
+        let semi = s.semi_axes();
+        assert!(
+            (semi - DVec3::new(0.5, 0.5, 2.0)).length() < 1e-12,
+            "{semi:?}"
+        );
+        assert!(ellipsoid_from_points([pts[0]; 4], DVec3::Y).is_none());
+    }
     use crate::model::forces::image::ImageFrame;
 
     /// A dark filled ellipse on a white background.

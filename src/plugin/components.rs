@@ -339,6 +339,53 @@ pub struct Spring {
     pub stiffness: f64,
 }
 
+impl Spring {
+    /// Spring constant of a mouse spring per unit of the membrane stiffness w1 (see
+    /// [`Self::mouse_stiffness`]).
+    pub const GAIN: f64 = 2.0;
+    /// Longest a mouse spring may stretch, in units of the model's scale a.
+    pub const MAX_STRETCH: f64 = 1.5;
+
+    /// The constant of a mouse spring on a model: [`Self::GAIN`] × (w1 + w0 a²). A point force
+    /// f raises a spike of height about f / w1 in the membrane (and f / (w0 a²) where w0
+    /// dominates), so a spring scaled to the stiffness deforms every model visibly without
+    /// tearing it into a spike that the global DOFs then chase.
+    pub fn mouse_stiffness(settings: &ModelSettings, a: f64) -> f64 {
+        Self::GAIN * (settings.w1 + settings.w0 * a * a).max(1e-6)
+    }
+
+    /// A spring of constant `stiffness` on the node nearest `hit` (world space) of a model whose
+    /// world node positions are `node_x`, anchored at that node.
+    pub fn grab(tess: &Tessellation, node_x: &[DVec3], hit: DVec3, stiffness: f64) -> Option<Self> {
+        if node_x.len() != tess.node_count() || !hit.is_finite() || !(stiffness > 0.0) {
+            return None;
+        }
+        let node = (0..node_x.len()).min_by(|&i, &j| {
+            node_x[i]
+                .distance_squared(hit)
+                .total_cmp(&node_x[j].distance_squared(hit))
+        })?;
+        let [u, v] = tess.uv[node];
+        Some(Self {
+            u,
+            v,
+            anchor: node_x[node],
+            stiffness,
+        })
+    }
+
+    /// Moves the anchor to `target`, but no further than [`Self::MAX_STRETCH`] a from the grabbed
+    /// surface point: the force stays below GAIN · MAX_STRETCH · a³ however far the cursor goes,
+    /// so no drag can blow the simulation up.
+    pub fn pull_towards(&mut self, tess: &Tessellation, node_x: &[DVec3], target: DVec3, a: f64) {
+        if node_x.len() != tess.node_count() || !target.is_finite() {
+            return;
+        }
+        let at = tess.locate(self.u, self.v).interpolate(|k| node_x[k]);
+        self.anchor = at + (target - at).clamp_length_max(Self::MAX_STRETCH * a.max(0.0));
+    }
+}
+
 /// User springs acting on a model.
 #[derive(Component, Reflect, Clone, Debug, Default, PartialEq)]
 #[reflect(Component, Default, Debug, PartialEq)]

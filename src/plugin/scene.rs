@@ -296,7 +296,8 @@ pub fn spawn_scenes(
 }
 
 /// The scene of `root` with every part's current state: pose, global shape and settings from
-/// its components, and its local displacements when `include_local`.
+/// its components, and its local displacements when `include_local`. Models that are children of
+/// the root but were not spawned from the scene are added as parts with no data.
 pub fn scene_from_world(
     world: &World,
     root: Entity,
@@ -311,12 +312,12 @@ pub fn scene_from_world(
         .get(handle.id())
         .ok_or("the scene has not loaded")?;
     let mut def = scene.def.clone();
-    let instance = world
-        .get::<SceneInstance>(root)
-        .ok_or("the root has no SceneInstance")?;
-    for &e in &instance.parts {
-        let (Some(ScenePart { index }), Some(rigid), Some(shape), Some(local), Some(fem), Some(s)) = (
-            world.get::<ScenePart>(e),
+    let children: Vec<Entity> = world
+        .get::<Children>(root)
+        .map(|c| c.iter().collect())
+        .unwrap_or_default();
+    for e in children {
+        let (Some(rigid), Some(shape), Some(local), Some(fem), Some(s)) = (
             world.get::<RigidState>(e),
             world.get::<GlobalShape>(e),
             world.get::<LocalDofs>(e),
@@ -325,7 +326,19 @@ pub fn scene_from_world(
         ) else {
             continue;
         };
-        let Some(part) = def.parts.get_mut(*index) else {
+        // A model added under the root (e.g. placed by a user) becomes a new part with no data.
+        let index = match world.get::<ScenePart>(e) {
+            Some(p) => p.index,
+            None => {
+                let name = world
+                    .get::<Name>(e)
+                    .map(|n| n.to_string())
+                    .unwrap_or_default();
+                def.parts.push(PartDef::new(name));
+                def.parts.len() - 1
+            }
+        };
+        let Some(part) = def.parts.get_mut(index) else {
             continue;
         };
         part.k = fem.k;
@@ -349,7 +362,7 @@ pub fn scene_from_world(
             displacement: local.displacement.clone(),
         };
         let sized = local.displacement.len() == fem.k * fem.k + 2;
-        def.set_state(*index, &state, include_local && sized);
+        def.set_state(index, &state, include_local && sized);
     }
     Ok(def)
 }
