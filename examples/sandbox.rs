@@ -60,6 +60,7 @@ enum Action {
     Open(String),
     SaveScene,
     ExportObj,
+    Fit(Entity),
 }
 
 /// The camera's orbit about a target.
@@ -151,7 +152,11 @@ fn main() {
     )
     .add_systems(EguiPrimaryContextPass, inspector)
     .add_observer(grab)
-    .add_observer(release);
+    .add_observer(release)
+    .add_observer(drag_end);
+    if args.iter().any(|a| a == "--demo-drag") {
+        app.add_systems(Update, demo_drag.before(drag_spring));
+    }
     screenshot::maybe_add(&mut app);
     app.run();
 }
@@ -211,6 +216,7 @@ fn actions(world: &mut World) {
             }
         }
         Action::ExportObj => export_selected(world),
+        Action::Fit(part) => fit_to_convergence(world, part),
     };
     world.resource_mut::<Sandbox>().message = message;
 }
@@ -265,10 +271,8 @@ fn keys(
     egui: Res<EguiWantsInput>,
     mut sandbox: ResMut<Sandbox>,
     mut orbit: ResMut<Orbit>,
-    mut controls: Query<(Entity, &mut SimControl)>,
+    mut controls: Query<&mut SimControl>,
     instances: Query<&SceneInstance>,
-    mut commands: Commands,
-    ranges: Query<&RangeData>,
 ) {
     if egui.wants_any_keyboard_input() {
         return;
@@ -301,12 +305,12 @@ fn keys(
     }
     if let Some(sel) = sandbox.selected {
         if input.just_pressed(KeyCode::KeyR)
-            && let Ok((_, mut c)) = controls.get_mut(sel)
+            && let Ok(mut c) = controls.get_mut(sel)
         {
             c.reset_requested = true;
         }
         if input.just_pressed(KeyCode::KeyF) {
-            sandbox.message = fit_to_convergence(&mut commands, sel, &ranges, &mut controls);
+            sandbox.pending = Some(Action::Fit(sel));
         }
     }
     let step = 0.03;
@@ -339,22 +343,17 @@ fn keys(
 }
 
 /// Gives a range part a [`FitDriver`] that runs the fitter's stages to rest, and unpauses it.
-fn fit_to_convergence(
-    commands: &mut Commands,
-    part: Entity,
-    ranges: &Query<&RangeData>,
-    controls: &mut Query<(Entity, &mut SimControl)>,
-) -> String {
-    if ranges.get(part).is_err() {
+fn fit_to_convergence(world: &mut World, part: Entity) -> String {
+    if world.get::<RangeData>(part).is_none() {
         return "only parts with range data are fitted to convergence".into();
     }
     let options = FitOptions::default();
-    commands.entity(part).insert(FitDriver::new(
+    world.entity_mut(part).insert(FitDriver::new(
         options,
         [Stage::Cover, Stage::Global, Stage::Joint],
         options.max_steps as u64,
     ));
-    if let Ok((_, mut c)) = controls.get_mut(part) {
+    if let Some(mut c) = world.get_mut::<SimControl>(part) {
         c.paused = false;
     }
     "fitting to convergence".into()
@@ -498,15 +497,21 @@ fn drag_spring(
     }
 }
 
-/// Releasing the button removes the mouse spring.
-fn release(
-    up: On<Pointer<Release>>,
-    mut grab: ResMut<Grab>,
-    mut springs: Query<&mut SpringForces>,
-) {
-    if up.button != PointerButton::Primary {
-        return;
+/// Releasing the button removes the mouse spring (over a model: `Release`; anywhere after a
+/// drag: `DragEnd`).
+fn release(up: On<Pointer<Release>>, grab: ResMut<Grab>, springs: Query<&mut SpringForces>) {
+    if up.button == PointerButton::Primary {
+        end_grab(grab, springs);
     }
+}
+
+fn drag_end(end: On<Pointer<DragEnd>>, grab: ResMut<Grab>, springs: Query<&mut SpringForces>) {
+    if end.button == PointerButton::Primary {
+        end_grab(grab, springs);
+    }
+}
+
+fn end_grab(mut grab: ResMut<Grab>, mut springs: Query<&mut SpringForces>) {
     if let Some(model) = grab.model.take()
         && let Ok(mut s) = springs.get_mut(model)
         && grab.spring < s.0.len()
@@ -609,6 +614,61 @@ fn place_part(
     sandbox.message = format!("placed {name}");
 }
 
+/// `--demo-drag` (for the render test): once the scene runs, moves the real cursor onto the
+/// cylinder, presses the left button as the windowing system would report it, drags 160 pixels to
+/// the right over 40 frames and holds, then prints how far the cylinder moved. Picking, the grab,
+/// the drag and the spring all run as they do for a user.
+fn demo_drag(
+    mut frame: Local<u32>,
+    mut start: Local<Option<(Vec2, DVec3)>>,
+    sandbox: Res<Sandbox>,
+    grab: Res<Grab>,
+    mut window: Single<(Entity, &mut Window)>,
+    camera: Single<(&Camera, &GlobalTransform)>,
+    parts: Query<(&Name, &RigidState)>,
+    mut buttons: MessageWriter<bevy::input::mouse::MouseButtonInput>,
+    mut events: MessageWriter<bevy::window::WindowEvent>,
+) {
+    let Some((name, rigid)) = parts.iter().find(|(n, _)| n.as_str() == "cylinder") else {
+        return;
+    };
+    if sandbox.sim_steps < 20 {
+        return;
+    }
+    let (camera, cam_tf) = *camera;
+    let (window_entity, window) = &mut *window;
+    let Some((p0, c0)) = *start else {
+        let Ok(p) = camera.world_to_viewport(cam_tf, rigid.translation.as_vec3()) else {
+            return;
+        };
+        window.set_cursor_position(Some(p));
+        *start = Some((p, rigid.translation));
+        return;
+    };
+    *frame += 1;
+    match *frame {
+        1..=2 => {}
+        3 => {
+            let press = bevy::input::mouse::MouseButtonInput {
+                button: MouseButton::Left,
+                state: bevy::input::ButtonState::Pressed,
+                window: *window_entity,
+            };
+            buttons.write(press);
+            events.write(bevy::window::WindowEvent::MouseButtonInput(press));
+        }
+        4..=43 => window.set_cursor_position(Some(p0 + Vec2::new(4.0 * (*frame - 3) as f32, 0.0))),
+        44 => println!(
+            "demo drag: {} grabbed: {}, moved by {:.3} (x {:.3})",
+            name,
+            grab.model.is_some(),
+            (rigid.translation - c0).length(),
+            rigid.translation.x - c0.x
+        ),
+        _ => {}
+    }
+}
+
 /// Runs `steps_per_frame` simulation steps while running, or the requested single steps.
 fn run_simulation(world: &mut World) {
     let (running, n, single) = {
@@ -682,8 +742,13 @@ fn inspector(
                 .get(&FrameTimeDiagnosticsPlugin::FRAME_TIME)
                 .and_then(|d| d.smoothed())
                 .unwrap_or(0.0);
+            let steps_per_s = if frame_ms > 0.0 {
+                1000.0 / frame_ms * sandbox.steps_per_frame as f64
+            } else {
+                0.0
+            };
             ui.label(format!(
-                "frame {frame_ms:.1} ms · {} simulation steps",
+                "frame {frame_ms:.1} ms · {} simulation steps ({steps_per_s:.0}/s while running)",
                 sandbox.sim_steps
             ));
             ui.horizontal(|ui| {
@@ -839,6 +904,9 @@ fn inspector(
                 ui.checkbox(&mut control.paused, "paused");
                 if ui.button("Export OBJ").clicked() {
                     sandbox.pending = Some(Action::ExportObj);
+                }
+                if range.is_some() && ui.button("Fit").clicked() {
+                    sandbox.pending = Some(Action::Fit(sel));
                 }
             });
             if let Some(err) = &control.error {

@@ -1,5 +1,6 @@
-//! The sandbox in a real renderer: run it under Xvfb with Mesa's CPU Vulkan driver, save a
-//! screenshot, and check that the models are in it (their part colours where the parts are, not
+//! The sandbox in a real renderer: run it under Xvfb with Mesa's CPU Vulkan driver, drag the
+//! cylinder with the (scripted) mouse, save a screenshot, and check that the drag pulled the
+//! cylinder and that the models are in the picture (their part colours where the parts are, not
 //! a blank or black frame). Needs `xvfb-run` and a Vulkan driver; CI (`.ci/run`) installs them and
 //! sets `BDSQ_RENDER_TEST=1`, which makes their absence a failure rather than a skip.
 
@@ -36,9 +37,9 @@ fn the_sandbox_renders_its_models() {
     let status = Command::new("timeout")
         .args(["600", "xvfb-run", "-a", "-s", "-screen 0 1280x720x24"])
         .arg(example("sandbox"))
-        .args(["scenes/sandbox.dsq.ron", "--screenshot"])
+        .args(["scenes/sandbox.dsq.ron", "--demo-drag", "--screenshot"])
         .arg(&out)
-        .args(["--exit-after-steps", "60"])
+        .args(["--exit-after-steps", "160"])
         .env("BEVY_ASSET_ROOT", env!("CARGO_MANIFEST_DIR"))
         .env("WGPU_BACKEND", "vulkan")
         .output()
@@ -52,6 +53,23 @@ fn the_sandbox_renders_its_models() {
             .filter(|l| l.contains("ERROR") || l.contains("panicked"))
             .collect::<Vec<_>>()
             .join("\n")
+    );
+    // The scripted drag went through picking, the grab and the spring: the cylinder followed the
+    // cursor to the right.
+    let stdout = String::from_utf8_lossy(&status.stdout);
+    let line = stdout
+        .lines()
+        .find(|l| l.starts_with("demo drag:"))
+        .unwrap_or_else(|| panic!("no demo drag report in {stdout}"));
+    assert!(line.contains("cylinder grabbed: true"), "{line}");
+    let dx: f64 = line
+        .rsplit("(x ")
+        .next()
+        .and_then(|t| t.trim_end_matches(')').parse().ok())
+        .unwrap_or_else(|| panic!("{line}"));
+    assert!(
+        dx > 0.1,
+        "the pulled cylinder did not follow the cursor: {line}"
     );
     let img = image::open(&out).expect("a PNG").to_rgb32f();
     assert_eq!((img.width(), img.height()), (1280, 720));
