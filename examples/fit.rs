@@ -429,8 +429,7 @@ fn range_summary(
     through: &str,
     global_only: bool,
 ) -> serde_json::Value {
-    let r = report.residuals;
-    let params = FittedParams::from_report(report);
+    let (r, shape) = (report.residuals, report.state.shape);
     serde_json::json!({
         "file": name,
         "steps": report.steps,
@@ -446,8 +445,8 @@ fn range_summary(
         "rms": r.rms,
         "p95": r.p95,
         "max": r.max,
-        "a": params.shape.a, "a1": params.shape.a1, "a2": params.shape.a2, "a3": params.shape.a3,
-        "e1": params.shape.e1, "e2": params.shape.e2,
+        "a": shape.a, "a1": shape.a1, "a2": shape.a2, "a3": shape.a3,
+        "e1": shape.e1, "e2": shape.e2,
     })
 }
 

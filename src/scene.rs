@@ -587,13 +587,11 @@ impl SceneDef {
 
     /// The scene as RON text, every field written (what [`SceneDef::parse`] reads back to the same
     /// value, bit for bit: numbers are written in their shortest round-tripping form).
-    pub fn to_ron(&self) -> String {
+    pub fn to_ron(&self) -> Result<String, ron::Error> {
         let config = ron::ser::PrettyConfig::new()
             .extensions(ron::extensions::Extensions::IMPLICIT_SOME)
             .struct_names(false);
-        ron::Options::default()
-            .to_string_pretty(self, config)
-            .expect("a scene always serialises")
+        ron::Options::default().to_string_pretty(self, config)
     }
 
     /// Records `state` as part `index`'s placement (pose and global shape) and, when
@@ -644,12 +642,16 @@ impl SceneDef {
 
     /// Writes the scene to `file` (see [`SceneDef::to_ron`]).
     pub fn save(&self, file: &Path) -> Result<(), SceneError> {
-        std::fs::write(file, self.to_ron()).map_err(|e| SceneError {
+        let fail = |message: String| SceneError {
             file: file.to_path_buf(),
             position: None,
             field: None,
-            message: format!("cannot write: {e}"),
-        })
+            message,
+        };
+        let text = self
+            .to_ron()
+            .map_err(|e| fail(format!("cannot write the scene as RON: {e}")))?;
+        std::fs::write(file, text).map_err(|e| fail(format!("cannot write: {e}")))
     }
 
     /// The relative paths of the files the scene's data come from, by source name.

@@ -168,7 +168,7 @@ fn a_saved_scene_parses_back_to_the_same_state_bit_for_bit() {
         displacement,
     };
     def.set_state(0, &state, true);
-    let text = def.to_ron();
+    let text = def.to_ron().unwrap();
     let back = SceneDef::parse(&text, Path::new("saved.dsq.ron")).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(back, def);
     let loaded = data.initial_state(&back, 0).unwrap();
@@ -190,7 +190,7 @@ fn a_saved_scene_parses_back_to_the_same_state_bit_for_bit() {
     assert_eq!(bits(&loaded.displacement), bits(&state.displacement));
     // Without the local displacements they are dropped, and load as zero.
     def.set_state(0, &state, false);
-    let back = SceneDef::parse(&def.to_ron(), Path::new("saved.dsq.ron")).unwrap();
+    let back = SceneDef::parse(&def.to_ron().unwrap(), Path::new("saved.dsq.ron")).unwrap();
     assert!(back.parts[0].local.is_none());
     assert!(
         data.initial_state(&back, 0)
