@@ -6,7 +6,7 @@ use bevy::prelude::*;
 use bevy::time::TimeUpdateStrategy;
 use bevy_deformable_sq::io::load_points;
 use bevy_deformable_sq::model::dynamics::{
-    DynamicsParams, ModelState, NodalForces, Workspace, step,
+    DynamicsParams, ModelState, NodalForces, Workspace, step_prepared,
 };
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{FitOptions, fit};
@@ -50,21 +50,19 @@ fn attached(k: usize, m: usize) -> (Tessellation, ModelState, RangeForces) {
     (tess, state, range)
 }
 
-/// One simulation step as the plugin and the fitter take it: node positions, spring forces,
-/// generalized forces and the Euler update.
+/// One simulation step as the fitter takes it: node positions, spring forces, generalized forces
+/// and the Euler update.
 fn step_once(
     tess: &Tessellation,
     state: &mut ModelState,
     range: &RangeForces,
-    x: &mut Vec<DVec3>,
     forces: &mut NodalForces,
     ws: &mut Workspace,
     params: &DynamicsParams,
 ) {
-    state.node_positions(tess, x);
     forces.clear(tess.node_count());
-    range.accumulate(tess, x, forces);
-    step(tess, state, forces, params, ws).expect("finite");
+    range.accumulate(tess, ws.prepare(tess, state), forces);
+    step_prepared(tess, state, forces, params, ws).expect("finite");
 }
 
 fn euler_step(c: &mut Criterion) {
@@ -75,18 +73,14 @@ fn euler_step(c: &mut Criterion) {
             dt: 0.01,
             ..Default::default()
         };
-        let (mut x, mut forces, mut ws) = (
-            Vec::new(),
-            NodalForces::new(tess.node_count()),
-            Workspace::default(),
-        );
+        let (mut forces, mut ws) = (NodalForces::new(tess.node_count()), Workspace::default());
         let mut s = state.clone();
         g.bench_with_input(
             BenchmarkId::new("nodes_points", format!("{}n_{m}p", tess.node_count())),
             &(),
             |b, _| {
                 b.iter(|| {
-                    step_once(&tess, &mut s, &range, &mut x, &mut forces, &mut ws, &params);
+                    step_once(&tess, &mut s, &range, &mut forces, &mut ws, &params);
                     // Keep the state near the start so every iteration does the same work.
                     if s.displacement[0].length() > 1.0 {
                         s = state.clone();

@@ -38,12 +38,10 @@
 //! The global update is limited to a trust region (a quarter of the model size, a quarter radian,
 //! a quarter of each aspect and exponent per step).
 
-use super::fem::{ElementPoint, Tessellation};
+use super::fem::{ElementPoint, GridPowers, Tessellation};
 use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
 use super::linalg::cholesky_solve;
-use super::superquadric::{
-    NUM_SHAPE, SignedPowers, SuperquadricParams, jacobian_from_powers, shape, shape_from_powers,
-};
+use super::superquadric::{NUM_SHAPE, SuperquadricParams};
 use bevy::math::{DMat3, DQuat, DVec3};
 
 /// Number of global degrees of freedom: q_c (3) + q_θ (4) + q_s (6).
@@ -113,10 +111,34 @@ pub fn node_positions(
 ) {
     let r = rotation_matrix(rotation);
     out.clear();
-    out.extend(tess.trig.iter().enumerate().map(|(i, t)| {
-        let d = displacement.get(i).copied().unwrap_or(DVec3::ZERO);
-        translation + r * (shape(shape_q, t) + d)
-    }));
+    for_each_model_point(
+        tess,
+        shape_q,
+        &mut GridPowers::default(),
+        displacement,
+        |_, p| out.push(translation + r * p),
+    );
+}
+
+/// Calls `visit(i, p_i)` with the model-frame point p_i = s_i + d_i of every node in index order,
+/// computing the signed powers once per ring and longitude into `grid`. Displacements missing at
+/// the end of `displacement` count as zero.
+fn for_each_model_point(
+    tess: &Tessellation,
+    q: &SuperquadricParams,
+    grid: &mut GridPowers,
+    displacement: &[DVec3],
+    mut visit: impl FnMut(usize, DVec3),
+) {
+    tess.grid_powers(q, grid);
+    let axes = q.semi_axes();
+    let grid = &*grid;
+    tess.for_each_grid_node(|i, ring, lon| {
+        let [cu, su] = grid.rings[ring];
+        let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
+        let d = displacement.get(i).copied().unwrap_or_default();
+        visit(i, axes * DVec3::new(cu * cv, cu * sv, su) + d);
+    });
 }
 
 /// Point forces spread to the nodes, with the stiffness weight κ_i of the springs among them.
@@ -158,7 +180,14 @@ impl NodalForces {
 
     /// Adds a world force `f` acting at a point inside an element, spread as f_i = N_i f (eq. 22),
     /// with spring stiffness `kappa` spread the same way.
+    #[inline]
     pub fn add(&mut self, at: &ElementPoint, f: DVec3, kappa: f64) {
+        if at.weights[0] == 1.0 {
+            let n = at.nodes[0] as usize;
+            self.force[n] += f;
+            self.stiffness[n] += kappa;
+            return;
+        }
         for i in 0..4 {
             let w = at.weights[i];
             if w != 0.0 {
@@ -290,37 +319,53 @@ impl std::error::Error for StepError {}
 /// Reusable buffers and caches for [`step`], so a step allocates nothing.
 #[derive(Clone, Debug, Default)]
 pub struct Workspace {
+    grid: GridPowers,
     points: Vec<DVec3>,
-    powers: Vec<SignedPowers>,
+    world: Vec<DVec3>,
     kd: Vec<DVec3>,
     local_force: Vec<DVec3>,
     new_d: Vec<DVec3>,
     row_bounds: Vec<f64>,
+    inv_area: Vec<f64>,
     row_bounds_key: Option<(f64, f64, usize)>,
 }
 
 impl Workspace {
-    /// Model-frame points p_i = s_i + d_i and the signed powers behind s_i, once per step.
-    fn prepare_points(&mut self, tess: &Tessellation, state: &ModelState) {
-        self.powers.clear();
-        self.powers
-            .extend(tess.trig.iter().map(|t| SignedPowers::new(&state.shape, t)));
+    /// Computes, once per step, the signed powers of `state`'s shape on the grid, the model-frame
+    /// points p_i = s_i + d_i and the world positions x_i = c + R p_i (eqs. 2, 3), and returns the
+    /// world positions (also [`Workspace::world_positions`] until the next call).
+    pub fn prepare(&mut self, tess: &Tessellation, state: &ModelState) -> &[DVec3] {
+        let r = rotation_matrix(state.rotation);
+        let c = state.translation;
         self.points.clear();
-        self.points.extend(
-            self.powers
-                .iter()
-                .zip(&state.displacement)
-                .map(|(p, d)| shape_from_powers(&state.shape, p) + *d),
+        self.world.clear();
+        let (points, world) = (&mut self.points, &mut self.world);
+        for_each_model_point(
+            tess,
+            &state.shape,
+            &mut self.grid,
+            &state.displacement,
+            |_, p| {
+                points.push(p);
+                world.push(c + r * p);
+            },
         );
+        &self.world
     }
 
-    fn row_bounds(&mut self, tess: &Tessellation, w0: f64, w1: f64) -> &[f64] {
+    /// The world node positions of the state last given to [`Workspace::prepare`].
+    pub fn world_positions(&self) -> &[DVec3] {
+        &self.world
+    }
+
+    fn row_bounds(&mut self, tess: &Tessellation, w0: f64, w1: f64) -> (&[f64], &[f64]) {
         let key = (w0, w1, tess.node_count());
         if self.row_bounds_key != Some(key) {
             self.row_bounds = tess.stiffness_row_bounds(w0, w1);
+            self.inv_area = tess.node_area.iter().map(|a| 1.0 / a).collect();
             self.row_bounds_key = Some(key);
         }
-        &self.row_bounds
+        (&self.row_bounds, &self.inv_area)
     }
 }
 
@@ -331,7 +376,7 @@ pub fn generalized_global_forces(
     forces: &NodalForces,
 ) -> [f64; NUM_GLOBAL] {
     let mut ws = Workspace::default();
-    ws.prepare_points(tess, state);
+    ws.prepare(tess, state);
     global_system(tess, state, &ws, forces).1
 }
 
@@ -341,55 +386,169 @@ pub fn generalized_local_forces(state: &ModelState, forces: &NodalForces) -> Vec
     forces.force.iter().map(|f| rt * *f).collect()
 }
 
+/// The structure of J that [`global_system`] sums over: component c of column b is
+/// J_b,c = base_c (α_c,b · φ_c), with base = (X, Y, Z) = (cos^ε1 u cos^ε2 v, cos^ε1 u sin^ε2 v,
+/// sin^ε1 u), the log features φ_x = (1, ln|cos u|, ln|cos v|), φ_y = (1, ln|cos u|, ln|sin v|),
+/// φ_z = (1, ln|sin u|, 0), and constant coefficients α (eq. 10 as corrected in `superquadric`).
+/// Returns α indexed [c][b].
+fn jacobian_coefficients(q: &SuperquadricParams) -> [[[f64; 3]; NUM_SHAPE]; 3] {
+    let a = q.a;
+    let z = [0.0; 3];
+    [
+        [
+            [q.a1, 0.0, 0.0],
+            [a, 0.0, 0.0],
+            z,
+            z,
+            [0.0, a * q.a1, 0.0],
+            [0.0, 0.0, a * q.a1],
+        ],
+        [
+            [q.a2, 0.0, 0.0],
+            z,
+            [a, 0.0, 0.0],
+            z,
+            [0.0, a * q.a2, 0.0],
+            [0.0, 0.0, a * q.a2],
+        ],
+        [
+            [q.a3, 0.0, 0.0],
+            z,
+            z,
+            [a, 0.0, 0.0],
+            [0.0, a * q.a3, 0.0],
+            z,
+        ],
+    ]
+}
+
+/// The log features φ_c of one node (see [`jacobian_coefficients`]).
+#[cfg(test)]
+fn log_features(t: &super::superquadric::Trig) -> [[f64; 3]; 3] {
+    [
+        [1.0, t.ln_cu, t.ln_cv],
+        [1.0, t.ln_cu, t.ln_sv],
+        [1.0, t.ln_su, 0.0],
+    ]
+}
+
+fn dot3(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
 /// Accumulates the stiffness-weighted Gram matrix Σ κ_i L_iᵀ L_i and the generalized forces
-/// Σ L_iᵀ F_i, using the block structure of L = [I, −R p̃ G, R J] so each node costs ~250 flops.
+/// Σ L_iᵀ F_i, using the block structure of L = [I, −R p̃ G, R J] and the per-component structure
+/// of J ([`jacobian_coefficients`]): each node adds to ~70 moments (about 130 flops), and the
+/// 13 × 13 system is assembled from them once.
 fn global_system(
     tess: &Tessellation,
     state: &ModelState,
     ws: &Workspace,
     forces: &NodalForces,
 ) -> ([[f64; NUM_GLOBAL]; NUM_GLOBAL], [f64; NUM_GLOBAL], f64) {
-    let (points, powers) = (&ws.points, &ws.powers);
+    let (points, grid) = (&ws.points, &ws.grid);
     let r = rotation_matrix(state.rotation);
     let rt = r.transpose();
     let g = g_matrix(state.rotation);
     let mut kappa_sum = 0.0;
     let mut kp = DVec3::ZERO; // Σ κ p
-    let mut inertia = DMat3::ZERO; // Σ κ (|p|² I − p pᵀ)
-    let mut k_j = [DVec3::ZERO; NUM_SHAPE]; // Σ κ J_b
-    let mut k_pj = [DVec3::ZERO; NUM_SHAPE]; // Σ κ p × J_b
-    let mut k_jj = [[0.0; NUM_SHAPE]; NUM_SHAPE]; // Σ κ J_a · J_b
+    let mut kpp = [0.0; 6]; // Σ κ p pᵀ, packed (xx, xy, xz, yy, yz, zz)
     let mut f_c = DVec3::ZERO;
     let mut torque = DVec3::ZERO; // Σ p × RᵀF (model frame)
-    let mut f_s = [0.0; NUM_SHAPE];
-    for i in 0..forces.force.len() {
+    // Moments, per J component c: mm[c] = Σ κ base_c² φ_c φ_cᵀ (packed), v[c] = Σ κ base_c φ_c,
+    // w[c][d] = Σ κ p_d base_c φ_c, fs[c] = Σ base_c (RᵀF)_c φ_c.
+    let mut mm = [[0.0; 6]; 3];
+    let mut v = [[0.0; 3]; 3];
+    let mut w = [[[0.0; 3]; 3]; 3];
+    let mut fs = [[0.0; 3]; 3];
+    tess.for_each_grid_node(|i, ring, lon| {
         let f = forces.force[i] + forces.shape_force[i];
         let kappa = forces.stiffness[i] + forces.shape_stiffness[i];
         if kappa == 0.0 && f == DVec3::ZERO {
-            continue;
+            return;
         }
         let p = points[i];
-        let jac = jacobian_from_powers(&state.shape, &tess.trig[i], &powers[i]);
+        let [cu, su] = grid.rings[ring];
+        let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
+        let base = [cu * cv, cu * sv, su];
+        let ([ln_cu, ln_su], [ln_cv, ln_sv]) = tess.grid_logs(ring, lon);
+        let phi = [[1.0, ln_cu, ln_cv], [1.0, ln_cu, ln_sv], [1.0, ln_su, 0.0]];
         let fm = rt * f;
         f_c += f;
         torque += p.cross(fm);
-        for b in 0..NUM_SHAPE {
-            f_s[b] += jac[b].dot(fm);
+        let fma = fm.to_array();
+        for c in 0..3 {
+            let s = base[c] * fma[c];
+            for e in 0..3 {
+                fs[c][e] += s * phi[c][e];
+            }
         }
         if kappa != 0.0 {
             kappa_sum += kappa;
             kp += kappa * p;
-            inertia +=
-                kappa * (DMat3::from_diagonal(DVec3::splat(p.length_squared())) - outer(p, p));
-            for a in 0..NUM_SHAPE {
-                k_j[a] += kappa * jac[a];
-                k_pj[a] += kappa * p.cross(jac[a]);
-                for b in a..NUM_SHAPE {
-                    k_jj[a][b] += kappa * jac[a].dot(jac[b]);
+            let pa = p.to_array();
+            kpp[0] += kappa * pa[0] * pa[0];
+            kpp[1] += kappa * pa[0] * pa[1];
+            kpp[2] += kappa * pa[0] * pa[2];
+            kpp[3] += kappa * pa[1] * pa[1];
+            kpp[4] += kappa * pa[1] * pa[2];
+            kpp[5] += kappa * pa[2] * pa[2];
+            for c in 0..3 {
+                let kb = kappa * base[c];
+                let ph = &phi[c];
+                for e in 0..3 {
+                    v[c][e] += kb * ph[e];
+                }
+                let kbb = kb * base[c];
+                let (l1, l2) = (kbb * ph[1], kbb * ph[2]);
+                mm[c][0] += kbb;
+                mm[c][1] += l1;
+                mm[c][2] += l2;
+                mm[c][3] += l1 * ph[1];
+                mm[c][4] += l1 * ph[2];
+                mm[c][5] += l2 * ph[2];
+                for d in 0..3 {
+                    let s = kb * pa[d];
+                    for e in 0..3 {
+                        w[c][d][e] += s * ph[e];
+                    }
                 }
             }
         }
-    }
+    });
+    let alpha = jacobian_coefficients(&state.shape);
+    let k_j: [DVec3; NUM_SHAPE] = std::array::from_fn(|b| {
+        DVec3::new(
+            dot3(&alpha[0][b], &v[0]),
+            dot3(&alpha[1][b], &v[1]),
+            dot3(&alpha[2][b], &v[2]),
+        )
+    }); // Σ κ J_b
+    let k_pj: [DVec3; NUM_SHAPE] = std::array::from_fn(|b| {
+        // Σ κ p × J_b, with Σ κ p_d J_b,c = α_c,b · w[c][d].
+        let pj = |c: usize, d: usize| dot3(&alpha[c][b], &w[c][d]);
+        DVec3::new(
+            pj(2, 1) - pj(1, 2),
+            pj(0, 2) - pj(2, 0),
+            pj(1, 0) - pj(0, 1),
+        )
+    });
+    let unpack = |m: &[f64; 6]| [[m[0], m[1], m[2]], [m[1], m[3], m[4]], [m[2], m[4], m[5]]];
+    let moments = mm.map(|m| unpack(&m));
+    let gram = |a: usize, b: usize| -> f64 {
+        // Σ κ J_a · J_b = Σ_c α_c,aᵀ M_c α_c,b
+        (0..3)
+            .map(|c| {
+                let mb = moments[c].map(|row| dot3(&row, &alpha[c][b]));
+                dot3(&alpha[c][a], &mb)
+            })
+            .sum()
+    };
+    let p2 = kpp[0] + kpp[3] + kpp[5];
+    let ppt = unpack(&kpp);
+    let inertia = DMat3::from_cols_array_2d(&std::array::from_fn(|col| {
+        std::array::from_fn(|row| (if row == col { p2 } else { 0.0 }) - ppt[row][col])
+    })); // Σ κ (|p|² I − p pᵀ)
     let mut m = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
     // c–c
     for (k, row) in m.iter_mut().enumerate().take(3) {
@@ -419,7 +578,7 @@ fn global_system(
     }
     for a in 0..NUM_SHAPE {
         for b in a..NUM_SHAPE {
-            m[7 + a][7 + b] = k_jj[a][b];
+            m[7 + a][7 + b] = gram(a, b);
         }
     }
     for i in 0..NUM_GLOBAL {
@@ -432,12 +591,10 @@ fn global_system(
     for j in 0..4 {
         f[3 + j] = g[j].dot(torque);
     }
-    f[7..].copy_from_slice(&f_s);
+    for b in 0..NUM_SHAPE {
+        f[7 + b] = (0..3).map(|c| dot3(&alpha[c][b], &fs[c])).sum();
+    }
     (m, f, kappa_sum)
-}
-
-fn outer(a: DVec3, b: DVec3) -> DMat3 {
-    DMat3::from_cols(a * b.x, a * b.y, a * b.z)
 }
 
 /// The global block of one Euler step: δq_g = Δt C_g⁻¹ f_g (eq. 15), frozen DOFs removed.
@@ -592,6 +749,21 @@ pub fn step(
     params: &DynamicsParams,
     ws: &mut Workspace,
 ) -> Result<StepReport, StepError> {
+    ws.prepare(tess, state);
+    step_prepared(tess, state, forces, params, ws)
+}
+
+/// [`step`] for a state that [`Workspace::prepare`] was last called on, so a loop that needs the
+/// node positions for its forces computes them once per step: `prepare` → forces from
+/// [`Workspace::world_positions`] → `step_prepared` → `prepare` the new state → …
+/// Given a workspace prepared for another state, the step uses that state's node points.
+pub fn step_prepared(
+    tess: &Tessellation,
+    state: &mut ModelState,
+    forces: &NodalForces,
+    params: &DynamicsParams,
+    ws: &mut Workspace,
+) -> Result<StepReport, StepError> {
     let n = tess.node_count();
     assert!(
         forces.force.len() == n && forces.shape_force.len() == n,
@@ -603,7 +775,10 @@ pub fn step(
         clamped: false,
         trust_limited: false,
     };
-    ws.prepare_points(tess, state);
+    assert!(
+        ws.points.len() == n,
+        "Workspace not prepared for this tessellation"
+    );
     let mut delta = global_increment(tess, state, ws, forces, params)?;
     report.trust_limited = limit_global(&mut delta, state);
 
@@ -615,10 +790,11 @@ pub fn step(
         ws.local_force.clear();
         ws.local_force.extend(forces.force.iter().map(|f| rt * *f));
         let (w0, w1, gamma) = (params.w0, params.w1, params.gamma_local);
-        let rows = ws.row_bounds(tess, w0, w1);
+        let (rows, inv_area) = ws.row_bounds(tess, w0, w1);
         let lambda_max = (0..n)
-            .map(|i| (rows[i] + forces.stiffness[i]) / (gamma * tess.node_area[i]))
-            .fold(0.0_f64, f64::max);
+            .map(|i| (rows[i] + forces.stiffness[i]) * inv_area[i])
+            .fold(0.0_f64, f64::max)
+            / gamma;
         report.dt_critical = if lambda_max > 0.0 {
             2.0 / lambda_max
         } else {
@@ -641,11 +817,12 @@ pub fn step(
             ws.kd.clear();
             ws.kd.resize(n, DVec3::ZERO);
             tess.apply_stiffness(w0, w1, &ws.new_d, &mut ws.kd);
+            let h_over_gamma = h / gamma;
             for i in 0..n {
                 // Data springs linearised about the start of the step: F(d) = F(d⁰) − κ (d − d⁰).
                 let spring = forces.stiffness[i] * (ws.new_d[i] - state.displacement[i]);
-                let rate = (ws.local_force[i] - spring - ws.kd[i]) / (gamma * tess.node_area[i]);
-                ws.new_d[i] += h * rate;
+                let rate = (ws.local_force[i] - spring - ws.kd[i]) * ws.inv_area[i];
+                ws.new_d[i] += h_over_gamma * rate;
             }
         }
     }
@@ -804,6 +981,27 @@ mod tests {
     }
 
     #[test]
+    fn jacobian_structure_reproduces_the_jacobian() {
+        // J_b,c = base_c (α_c,b · φ_c) is the same J as `superquadric::jacobian`.
+        let tess = Tessellation::new(9);
+        let state = test_state(&tess);
+        let alpha = jacobian_coefficients(&state.shape);
+        let mut powers = Vec::new();
+        tess.signed_powers(&state.shape, &mut powers);
+        for (t, pw) in tess.trig.iter().zip(&powers) {
+            let jac = jacobian(&state.shape, t);
+            let base = [pw.cu * pw.cv, pw.cu * pw.sv, pw.su];
+            let phi = log_features(t);
+            for b in 0..NUM_SHAPE {
+                for c in 0..3 {
+                    let rebuilt = base[c] * dot3(&alpha[c][b], &phi[c]);
+                    assert!((rebuilt - jac[b][c]).abs() <= 1e-14 * (1.0 + jac[b][c].abs()));
+                }
+            }
+        }
+    }
+
+    #[test]
     fn gram_matrix_equals_explicit_lt_l_sum() {
         // Σ κ L_iᵀ L_i through the block formulas equals the sum built from explicit columns.
         let tess = Tessellation::new(5);
@@ -813,7 +1011,7 @@ mod tests {
             forces.stiffness[i] = 0.1 + (i % 3) as f64;
         }
         let mut ws = Workspace::default();
-        ws.prepare_points(&tess, &state);
+        ws.prepare(&tess, &state);
         let (m, _, _) = global_system(&tess, &state, &ws, &forces);
         let pts = ws.points.clone();
         let r = rotation_matrix(state.rotation);

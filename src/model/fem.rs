@@ -14,9 +14,9 @@
 //! **Stiffness** (eqs. 13, 40–47): per displacement component, K^j = ∫ w1 ∇N ∇Nᵀ + w0 N Nᵀ du.
 //! The paper's γ_i = [∂N_i/∂u, ∂N_i/∂v, 1]ᵀ after eq. (45) should read [.., .., N_i]ᵀ — the third
 //! strain component is d_k = Σ N_i q_i — and is implemented so. K_dd is never assembled:
-//! [`Tessellation::apply_stiffness`] adds K q element by element, as section IV prescribes.
+//! [`Tessellation::apply_stiffness`] adds K q without assembling K, as section IV prescribes.
 
-use super::superquadric::Trig;
+use super::superquadric::{SignedPowers, SuperquadricParams, Trig, spow};
 use bevy::math::DVec3;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
@@ -188,7 +188,12 @@ impl ElementPoint {
     }
 
     /// Σ N_i f(node_i) for a nodal field given by a lookup.
+    #[inline]
     pub fn interpolate(&self, f: impl Fn(usize) -> DVec3) -> DVec3 {
+        if self.weights[0] == 1.0 {
+            // On a node (the paper's nearest-node springs): the other weights are 0.
+            return f(self.nodes[0] as usize);
+        }
         (0..4)
             .filter(|&i| self.weights[i] != 0.0)
             .map(|i| self.weights[i] * f(self.nodes[i] as usize))
@@ -229,6 +234,52 @@ pub struct Tessellation {
     /// Lumped nodal area A_i = ∫ N_i du (row sums of the mass matrices); Σ A_i is the area the
     /// elements cover in (u, v).
     pub node_area: Vec<f64>,
+}
+
+/// Signed powers of a superquadric on the tessellation's grid. Node (ring i, longitude j) has
+/// cos^ε1 u, sin^ε1 u from ring i and cos^ε2 v, sin^ε2 v from longitude j, so a whole model needs
+/// only O(k) powers instead of O(k²).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GridPowers {
+    /// (cos^ε1 u, sin^ε1 u) of the south pole, the k rings, and the north pole (k + 2 entries).
+    pub rings: Vec<[f64; 2]>,
+    /// (cos^ε2 v, sin^ε2 v) of the k longitudes.
+    pub longitudes: Vec<[f64; 2]>,
+    /// (cos^ε2 v, sin^ε2 v) of the south and north pole (their v is 0).
+    pub poles: [[f64; 2]; 2],
+}
+
+impl GridPowers {
+    /// The signed powers of node `i` of `tess`.
+    #[inline]
+    pub fn at(&self, tess: &Tessellation, i: usize) -> SignedPowers {
+        let (r, j) = tess.grid_index(i);
+        let [cu, su] = self.rings[r];
+        let [cv, sv] = match j {
+            Some(j) => self.longitudes[j],
+            None => self.poles[usize::from(r != 0)],
+        };
+        SignedPowers { cu, su, cv, sv }
+    }
+}
+
+/// Adds K_e q_e of every element in `elems` (all sharing the matrix `k`) to `out`.
+fn apply_elements<const N: usize>(
+    elems: &[[u32; N]],
+    k: &[[f64; N]; N],
+    q: &[DVec3],
+    out: &mut [DVec3],
+) {
+    for e in elems {
+        let qe: [DVec3; N] = std::array::from_fn(|j| q[e[j] as usize]);
+        for i in 0..N {
+            let mut acc = DVec3::ZERO;
+            for j in 0..N {
+                acc += k[i][j] * qe[j];
+            }
+            out[e[i] as usize] += acc;
+        }
+    }
 }
 
 /// Pairs the triangles of a closed triangulation across their shared edges.
@@ -318,6 +369,80 @@ impl Tessellation {
         self.uv.len()
     }
 
+    /// The signed powers of shape `q` on the grid (see [`GridPowers`]): 2k + 4 `powf`s, where
+    /// evaluating [`SignedPowers::new`] at every node would take 4(k² + 2).
+    pub fn grid_powers(&self, q: &SuperquadricParams, out: &mut GridPowers) {
+        let k = self.k;
+        let ring = |t: &Trig| [spow(t.cu, q.e1), spow(t.su, q.e1)];
+        out.rings.clear();
+        out.rings.push(ring(&self.trig[0]));
+        out.rings
+            .extend((0..k).map(|i| ring(&self.trig[1 + i * k])));
+        out.rings.push(ring(&self.trig[self.north_pole()]));
+        out.longitudes.clear();
+        out.longitudes.extend(
+            self.trig[1..=k]
+                .iter()
+                .map(|t| [spow(t.cv, q.e2), spow(t.sv, q.e2)]),
+        );
+        let pole = |t: &Trig| [spow(t.cv, q.e2), spow(t.sv, q.e2)];
+        out.poles = [pole(&self.trig[0]), pole(&self.trig[self.north_pole()])];
+    }
+
+    /// The grid position of node `i`: (ring index into [`GridPowers::rings`], longitude index), or
+    /// `None` for the longitude of a pole (which has its own, [`GridPowers::poles`]).
+    #[inline]
+    pub fn grid_index(&self, i: usize) -> (usize, Option<usize>) {
+        if i == 0 {
+            (0, None)
+        } else if i == self.north_pole() {
+            (self.k + 1, None)
+        } else {
+            ((i - 1) / self.k + 1, Some((i - 1) % self.k))
+        }
+    }
+
+    /// Calls `visit(node, ring, longitude)` for every node in index order, with the indices of
+    /// [`GridPowers`] (`None` for a pole's longitude): the grid walk without a division per node.
+    #[inline(always)]
+    pub fn for_each_grid_node(&self, mut visit: impl FnMut(usize, usize, Option<usize>)) {
+        // One call site, so the visitor is inlined into the loop.
+        let (k, n) = (self.k, self.node_count());
+        let (mut ring, mut j) = (0, 0);
+        for i in 0..n {
+            let lon = (ring != 0 && ring <= k).then_some(j);
+            visit(i, ring, lon);
+            if ring == 0 || j + 1 == k {
+                ring += 1;
+                j = 0;
+            } else {
+                j += 1;
+            }
+        }
+    }
+
+    /// The [`Trig`] terms of ring `ring` and longitude `longitude` as indexed by
+    /// [`Tessellation::for_each_grid_node`]: (ln|cos u|, ln|sin u|) and (ln|cos v|, ln|sin v|).
+    #[inline]
+    pub fn grid_logs(&self, ring: usize, longitude: Option<usize>) -> ([f64; 2], [f64; 2]) {
+        let t = match ring {
+            0 => &self.trig[0],
+            r if r > self.k => &self.trig[self.north_pole()],
+            r => &self.trig[1 + (r - 1) * self.k],
+        };
+        let l = longitude.map_or(t, |j| &self.trig[1 + j]);
+        ([t.ln_cu, t.ln_su], [l.ln_cv, l.ln_sv])
+    }
+
+    /// The signed powers of every node for shape `q`: what [`SignedPowers::new`] gives for each
+    /// entry of `trig`, bit for bit, from [`Tessellation::grid_powers`].
+    pub fn signed_powers(&self, q: &SuperquadricParams, out: &mut Vec<SignedPowers>) {
+        let mut grid = GridPowers::default();
+        self.grid_powers(q, &mut grid);
+        out.clear();
+        out.extend((0..self.node_count()).map(|i| grid.at(self, i)));
+    }
+
     /// Index of the north pole node.
     pub fn north_pole(&self) -> usize {
         self.k * self.k + 1
@@ -347,30 +472,58 @@ impl Tessellation {
         }
     }
 
-    /// Adds K_dd q to `out`, element by element (section IV), for scalar stiffnesses w0, w1.
-    /// The three displacement components share the same element matrix (eq. 47), so each element
-    /// works on whole [`DVec3`]s.
+    /// Adds K_dd q to `out` (section IV: K is never assembled), for scalar stiffnesses w0, w1.
+    /// The three displacement components share the same element matrix (eq. 47), so the product
+    /// works on whole [`DVec3`]s. Every quadrilateral has the same matrix, so the quad band is
+    /// applied as the 3 × 3 stencil it sums to, ring by ring; the cap triangles element by
+    /// element. Equal to [`Tessellation::apply_stiffness_by_element`] up to rounding (tested).
     pub fn apply_stiffness(&self, w0: f64, w1: f64, q: &[DVec3], out: &mut [DVec3]) {
-        fn apply<const N: usize>(
-            elems: &[[u32; N]],
-            k: &[[f64; N]; N],
-            q: &[DVec3],
-            out: &mut [DVec3],
-        ) {
-            for e in elems {
-                let qe: [DVec3; N] = std::array::from_fn(|j| q[e[j] as usize]);
-                for i in 0..N {
-                    let mut acc = DVec3::ZERO;
-                    for j in 0..N {
-                        acc += k[i][j] * qe[j];
-                    }
-                    out[e[i] as usize] += acc;
+        let kq = self.quad_matrices.stiffness(w0, w1);
+        let k = self.k;
+        let row = |i: usize| &q[1 + i * k..1 + (i + 1) * k];
+        for i in 0..k {
+            let here = row(i);
+            let above = (i + 1 < k).then(|| row(i + 1));
+            let below = (i > 0).then(|| row(i - 1));
+            let o = &mut out[1 + i * k..1 + (i + 1) * k];
+            for j in 0..k {
+                let jm = if j == 0 { k - 1 } else { j - 1 };
+                let jp = if j + 1 == k { 0 } else { j + 1 };
+                let (h, hm, hp) = (here[j], here[jm], here[jp]);
+                let mut acc = DVec3::ZERO;
+                if let Some(a) = above {
+                    // This node is corner 0 of quad (i, j) and corner 3 of quad (i, j − 1).
+                    acc += (kq[0][0] + kq[3][3]) * h
+                        + kq[0][1] * a[j]
+                        + kq[0][2] * a[jp]
+                        + kq[0][3] * hp
+                        + kq[3][0] * hm
+                        + kq[3][1] * a[jm]
+                        + kq[3][2] * a[j];
                 }
+                if let Some(b) = below {
+                    // Corner 1 of quad (i − 1, j) and corner 2 of quad (i − 1, j − 1).
+                    acc += (kq[1][1] + kq[2][2]) * h
+                        + kq[1][0] * b[j]
+                        + kq[1][2] * hp
+                        + kq[1][3] * b[jp]
+                        + kq[2][0] * b[jm]
+                        + kq[2][1] * hm
+                        + kq[2][3] * b[j];
+                }
+                o[j] += acc;
             }
         }
-        apply(&self.quads, &self.quad_matrices.stiffness(w0, w1), q, out);
-        apply(&self.north, &self.north_matrices.stiffness(w0, w1), q, out);
-        apply(&self.south, &self.south_matrices.stiffness(w0, w1), q, out);
+        apply_elements(&self.north, &self.north_matrices.stiffness(w0, w1), q, out);
+        apply_elements(&self.south, &self.south_matrices.stiffness(w0, w1), q, out);
+    }
+
+    /// K_dd q element by element over every element: the reference [`Tessellation::apply_stiffness`]
+    /// is checked against.
+    pub fn apply_stiffness_by_element(&self, w0: f64, w1: f64, q: &[DVec3], out: &mut [DVec3]) {
+        apply_elements(&self.quads, &self.quad_matrices.stiffness(w0, w1), q, out);
+        apply_elements(&self.north, &self.north_matrices.stiffness(w0, w1), q, out);
+        apply_elements(&self.south, &self.south_matrices.stiffness(w0, w1), q, out);
     }
 
     /// The strain energy ½ qᵀ K_dd q (eq. 29, the q_d block).
@@ -486,6 +639,69 @@ mod tests {
             assert_ne!(t1, t2);
             for tri in [tris[t1 as usize], tris[t2 as usize]] {
                 assert!(tri.contains(&a) && tri.contains(&b));
+            }
+        }
+    }
+
+    #[test]
+    fn grid_signed_powers_equal_the_per_node_ones_bit_for_bit() {
+        let shapes = [
+            SuperquadricParams::default(),
+            SuperquadricParams {
+                a: 1.3,
+                a1: 0.4,
+                a2: 0.9,
+                a3: 1.0,
+                e1: 0.1,
+                e2: 1.93,
+            },
+        ];
+        for k in [3, 8, 31] {
+            let t = Tessellation::new(k);
+            for q in &shapes {
+                let mut grid = Vec::new();
+                t.signed_powers(q, &mut grid);
+                assert_eq!(grid.len(), t.node_count());
+                let bits = |p: &SignedPowers| [p.cu, p.su, p.cv, p.sv].map(f64::to_bits);
+                for (i, (g, trig)) in grid.iter().zip(&t.trig).enumerate() {
+                    assert_eq!(bits(g), bits(&SignedPowers::new(q, trig)), "k {k} node {i}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn grid_walk_visits_every_node_in_order_with_its_grid_index() {
+        for k in [3, 4, 17] {
+            let t = Tessellation::new(k);
+            let mut next = 0;
+            t.for_each_grid_node(|i, ring, lon| {
+                assert_eq!(i, next);
+                assert_eq!((ring, lon), t.grid_index(i), "k {k} node {i}");
+                next += 1;
+            });
+            assert_eq!(next, t.node_count());
+        }
+    }
+
+    #[test]
+    fn stencil_stiffness_equals_the_element_by_element_product() {
+        for k in [3, 4, 12, 31] {
+            let t = Tessellation::new(k);
+            let q: Vec<DVec3> = (0..t.node_count())
+                .map(|i| {
+                    let x = i as f64;
+                    DVec3::new((0.7 * x).sin(), (1.3 * x).cos(), (0.29 * x).sin() - 0.2)
+                })
+                .collect();
+            let (mut fast, mut reference) = (
+                vec![DVec3::ZERO; t.node_count()],
+                vec![DVec3::ZERO; t.node_count()],
+            );
+            t.apply_stiffness(0.003, 0.7, &q, &mut fast);
+            t.apply_stiffness_by_element(0.003, 0.7, &q, &mut reference);
+            for (i, (a, b)) in fast.iter().zip(&reference).enumerate() {
+                assert!((*a - *b).length() < 1e-13, "k {k} node {i}: {a} vs {b}");
             }
         }
     }

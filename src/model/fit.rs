@@ -22,7 +22,9 @@
 //! indexes — and the local displacements only the detail it misses. The paper lets both move from
 //! the start; set `global_first = false` for that.
 
-use super::dynamics::{DynamicsParams, ModelState, NodalForces, StepError, Workspace, step};
+use super::dynamics::{
+    DynamicsParams, ModelState, NodalForces, StepError, Workspace, step_prepared,
+};
 use super::fem::Tessellation;
 use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces};
 use super::init::{InitialPose, initial_pose, moments};
@@ -413,7 +415,6 @@ struct Relaxation<'a> {
     ws: Workspace,
     forces: NodalForces,
     x: Vec<DVec3>,
-    x_new: Vec<DVec3>,
     steps: u32,
     global_steps: u32,
     substepped: u32,
@@ -446,7 +447,6 @@ impl<'a> Relaxation<'a> {
             ws: Workspace::default(),
             forces: NodalForces::new(tess.node_count()),
             x,
-            x_new: Vec::new(),
             steps: 0,
             global_steps: 0,
             substepped: 0,
@@ -468,11 +468,12 @@ impl<'a> Relaxation<'a> {
         self.range.coverage = clock.coverage(self.opts);
         self.range.reassign(tess, &self.x);
         self.reassignments += 1;
+        self.ws.prepare(tess, &self.state);
         while self.steps < budget {
             self.range.migrate(tess, &self.x);
             self.forces.clear(tess.node_count());
             self.range.accumulate(tess, &self.x, &mut self.forces);
-            let report = step(
+            let report = step_prepared(
                 tess,
                 &mut self.state,
                 &self.forces,
@@ -487,9 +488,10 @@ impl<'a> Relaxation<'a> {
             if report.substeps > 1 {
                 self.substepped += 1;
             }
-            self.state.node_positions(tess, &mut self.x_new);
-            let motion = max_motion(&self.x, &self.x_new);
-            std::mem::swap(&mut self.x, &mut self.x_new);
+            let x_new = self.ws.prepare(tess, &self.state);
+            let motion = max_motion(&self.x, x_new);
+            self.x.clear();
+            self.x.extend_from_slice(x_new);
             if self.steps.is_multiple_of(100) {
                 let energy = self.range.energy(tess, &self.x)
                     + tess.strain_energy(self.params.w0, self.params.w1, &self.state.displacement);
