@@ -263,18 +263,19 @@ pub enum PartPlacement {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Damping {
-    /// γ_g: Δt/γ_g is the fraction of a Gauss–Newton step the global DOFs take.
-    pub global: f64,
+    /// γ_g: Δt/γ_g is the fraction of a Gauss–Newton step the global DOFs take. Unset: the
+    /// range fitter's γ_g = Δt (a whole step, [`FitOptions::default`]) on range parts, the
+    /// interactive half step ([`DynamicsParams::default`]) on the others.
+    pub global: Option<f64>,
     /// γ_d.
     pub local: f64,
 }
 
 impl Default for Damping {
     fn default() -> Self {
-        let d = DynamicsParams::default();
         Self {
-            global: d.gamma_global,
-            local: d.gamma_local,
+            global: None,
+            local: DynamicsParams::default().gamma_local,
         }
     }
 }
@@ -779,7 +780,9 @@ impl PartDef {
         check(file, &f("w0"), self.w0, 0.0, false)?;
         check(file, &f("w1"), self.w1, 0.0, false)?;
         check(file, &f("dt"), self.dt, 0.0, true)?;
-        check(file, &f("damping.global"), self.damping.global, 0.0, true)?;
+        if let Some(g) = self.damping.global {
+            check(file, &f("damping.global"), g, 0.0, true)?;
+        }
         check(file, &f("damping.local"), self.damping.local, 0.0, true)?;
         if self.reassign_every == 0 {
             return Err(SceneError::at_field(
@@ -910,7 +913,10 @@ impl PartDef {
             w0: self.w0,
             w1: self.w1,
             dt: self.dt,
-            gamma_global: self.damping.global,
+            gamma_global: self.damping.global.unwrap_or(match self.forces {
+                Forces::Range { .. } => FitOptions::default().dynamics.gamma_global,
+                _ => DynamicsParams::default().gamma_global,
+            }),
             gamma_local: self.damping.local,
             free: FreeDofs::with(!self.free.global_only, self.planar(), self.fix_epsilon()),
             ..DynamicsParams::default()

@@ -184,10 +184,15 @@ pub struct ModelSettings {
 }
 
 impl Default for ModelSettings {
-    /// The fitter's defaults: w0 = 1e-3, w1 = 0.1, Δt = 0.05, γ_g = 0.1, γ_d = 1, reattachment
-    /// every 200 steps.
+    /// The fitter's defaults (w0 = 1e-3, w1 = 0.1, Δt = 0.05, γ_d = 1, reattachment every 200
+    /// steps) with the interactive global damping of [`DynamicsParams::default`], γ_g = 0.1: half
+    /// a Gauss–Newton step per step, so a model dragged or edited moves smoothly instead of
+    /// jumping (the fitter takes whole steps, γ_g = Δt).
     fn default() -> Self {
-        Self::from_fit(&FitOptions::default())
+        Self {
+            gamma_global: DynamicsParams::default().gamma_global,
+            ..Self::from_fit(&FitOptions::default())
+        }
     }
 }
 

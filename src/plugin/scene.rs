@@ -345,7 +345,7 @@ pub fn scene_from_world(
         part.w0 = s.w0;
         part.w1 = s.w1;
         part.dt = s.dt;
-        part.damping.global = s.gamma_global;
+        part.damping.global = Some(s.gamma_global);
         part.damping.local = s.gamma_local;
         part.reassign_every = s.reassign_every;
         part.free.global_only = s.global_only;
