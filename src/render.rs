@@ -139,18 +139,12 @@ pub fn surface_vertices(
         &local.displacement,
         points,
     );
-    let mut normals = vec![DVec3::ZERO; points.len()];
-    for &[a, b, c] in tess.triangles() {
-        let (pa, pb, pc) = (points[a as usize], points[b as usize], points[c as usize]);
-        let n = (pb - pa).cross(pc - pa);
-        for i in [a, b, c] {
-            normals[i as usize] += n;
-        }
-    }
+    let mut normals = Vec::new();
+    tess.vertex_normals(points, &mut normals);
     let pos = points.iter().map(|p| p.as_vec3().to_array()).collect();
     let nor = normals
         .iter()
-        .map(|n| n.normalize_or(DVec3::Z).as_vec3().to_array())
+        .map(|n| n.try_normalize().unwrap_or(DVec3::Z).as_vec3().to_array())
         .collect();
     Some((pos, nor))
 }

@@ -400,15 +400,19 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
         0.01,
         77,
     );
-    for global_only in [true, false] {
+    for (global_only, point_to_plane) in [(true, false), (false, false), (true, true)] {
         let opts = FitOptions {
             k: 11,
             global_only,
+            point_to_plane,
             ..Default::default()
         };
         let core = fit(&points, &opts, |_| {}).expect("core fit");
         let app = fit_headless(&points, &opts).expect("headless fit");
-        assert_eq!(app.steps, core.steps, "global_only {global_only}");
+        assert_eq!(
+            app.steps, core.steps,
+            "global_only {global_only}, plane {point_to_plane}"
+        );
         assert_eq!(app.global_steps, core.global_steps);
         assert_eq!(app.converged, core.converged);
         assert_eq!(

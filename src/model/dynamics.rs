@@ -156,6 +156,13 @@ pub struct NodalForces {
     pub shape_force: Vec<DVec3>,
     /// Stiffness weight of the springs in `shape_force`.
     pub shape_stiffness: Vec<f64>,
+    /// Stiffness of point-to-plane springs at each node: springs whose force (in `shape_force`)
+    /// acts along the surface normal `plane_normal` only. They add ρ_i (L_iᵀ n_i)(L_iᵀ n_i)ᵀ to
+    /// the global damping block instead of the isotropic κ_i L_iᵀ L_i, so that the global step is
+    /// a Gauss–Newton step on the point-to-plane distances (see `forces::range`).
+    pub plane_stiffness: Vec<f64>,
+    /// Unit world-space surface normal n_i where `plane_stiffness` is non-zero.
+    pub plane_normal: Vec<DVec3>,
 }
 
 impl NodalForces {
@@ -168,11 +175,19 @@ impl NodalForces {
 
     /// Resets to zero forces on `n` nodes, keeping the allocation.
     pub fn clear(&mut self, n: usize) {
-        for v in [&mut self.force, &mut self.shape_force] {
+        for v in [
+            &mut self.force,
+            &mut self.shape_force,
+            &mut self.plane_normal,
+        ] {
             v.clear();
             v.resize(n, DVec3::ZERO);
         }
-        for v in [&mut self.stiffness, &mut self.shape_stiffness] {
+        for v in [
+            &mut self.stiffness,
+            &mut self.shape_stiffness,
+            &mut self.plane_stiffness,
+        ] {
             v.clear();
             v.resize(n, 0.0);
         }
@@ -461,10 +476,19 @@ fn global_system(
     let mut v = [[0.0; 3]; 3];
     let mut w = [[[0.0; 3]; 3]; 3];
     let mut fs = [[0.0; 3]; 3];
+    let alpha = jacobian_coefficients(&state.shape);
+    let plane = forces.plane_stiffness.len() == forces.force.len();
+    let mut plane_gram = [[0.0; NUM_GLOBAL]; NUM_GLOBAL]; // Σ ρ g gᵀ, upper triangle
+    let mut plane_sum = 0.0;
     tess.for_each_grid_node(|i, ring, lon| {
         let f = forces.force[i] + forces.shape_force[i];
         let kappa = forces.stiffness[i] + forces.shape_stiffness[i];
-        if kappa == 0.0 && f == DVec3::ZERO {
+        let rho = if plane {
+            forces.plane_stiffness[i]
+        } else {
+            0.0
+        };
+        if kappa == 0.0 && rho == 0.0 && f == DVec3::ZERO {
             return;
         }
         let p = points[i];
@@ -476,6 +500,30 @@ fn global_system(
         let fm = rt * f;
         f_c += f;
         torque += p.cross(fm);
+        if rho != 0.0 {
+            // g = L_iᵀ n = (n, Gᵀ (p × Rᵀn), Jᵀ Rᵀn), added as ρ g gᵀ.
+            let n = forces.plane_normal[i];
+            let m = rt * n;
+            let pm = p.cross(m);
+            let ma = m.to_array();
+            let mut gv = [0.0; NUM_GLOBAL];
+            gv[..3].copy_from_slice(&n.to_array());
+            for j in 0..4 {
+                gv[3 + j] = g[j].dot(pm);
+            }
+            for b in 0..NUM_SHAPE {
+                gv[7 + b] = (0..3)
+                    .map(|c| base[c] * ma[c] * dot3(&alpha[c][b], &phi[c]))
+                    .sum();
+            }
+            for a in 0..NUM_GLOBAL {
+                let ra = rho * gv[a];
+                for b in a..NUM_GLOBAL {
+                    plane_gram[a][b] += ra * gv[b];
+                }
+            }
+            plane_sum += rho;
+        }
         let fma = fm.to_array();
         for c in 0..3 {
             let s = base[c] * fma[c];
@@ -516,7 +564,6 @@ fn global_system(
             }
         }
     });
-    let alpha = jacobian_coefficients(&state.shape);
     let k_j: [DVec3; NUM_SHAPE] = std::array::from_fn(|b| {
         DVec3::new(
             dot3(&alpha[0][b], &v[0]),
@@ -581,6 +628,11 @@ fn global_system(
             m[7 + a][7 + b] = gram(a, b);
         }
     }
+    for (row, plane_row) in m.iter_mut().zip(&plane_gram) {
+        for (x, p) in row.iter_mut().zip(plane_row) {
+            *x += p;
+        }
+    }
     for i in 0..NUM_GLOBAL {
         for j in 0..i {
             m[i][j] = m[j][i];
@@ -594,7 +646,7 @@ fn global_system(
     for b in 0..NUM_SHAPE {
         f[7 + b] = (0..3).map(|c| dot3(&alpha[c][b], &fs[c])).sum();
     }
-    (m, f, kappa_sum)
+    (m, f, kappa_sum + plane_sum)
 }
 
 /// The global block of one Euler step: δq_g = Δt C_g⁻¹ f_g (eq. 15), frozen DOFs removed.
@@ -1003,12 +1055,19 @@ mod tests {
 
     #[test]
     fn gram_matrix_equals_explicit_lt_l_sum() {
-        // Σ κ L_iᵀ L_i through the block formulas equals the sum built from explicit columns.
+        // Σ κ L_iᵀ L_i + Σ ρ (L_iᵀ n_i)(L_iᵀ n_i)ᵀ through the block formulas and moments equals
+        // the sum built from explicit columns.
         let tess = Tessellation::new(5);
         let state = test_state(&tess);
         let mut forces = NodalForces::new(tess.node_count());
         for i in 0..tess.node_count() {
             forces.stiffness[i] = 0.1 + (i % 3) as f64;
+            if i % 4 == 1 {
+                // Point-to-plane springs on some nodes, with any unit normal.
+                forces.plane_stiffness[i] = 0.5 + (i % 5) as f64;
+                forces.plane_normal[i] =
+                    DVec3::new((i as f64).sin(), 0.3, (0.7 * i as f64).cos()).normalize();
+            }
         }
         let mut ws = Workspace::default();
         ws.prepare(&tess, &state);
@@ -1024,9 +1083,11 @@ mod tests {
                 .chain(b)
                 .chain(jac.iter().map(|c| r * *c))
                 .collect();
+            let n = forces.plane_normal[i];
             for a in 0..NUM_GLOBAL {
                 for bb in 0..NUM_GLOBAL {
-                    explicit[a][bb] += forces.stiffness[i] * cols[a].dot(cols[bb]);
+                    explicit[a][bb] += forces.stiffness[i] * cols[a].dot(cols[bb])
+                        + forces.plane_stiffness[i] * cols[a].dot(n) * cols[bb].dot(n);
                 }
             }
         }

@@ -602,6 +602,24 @@ impl Tessellation {
         }
     }
 
+    /// Smooth vertex normals of the surface through node positions `x`: the area-weighted sum of
+    /// the normals of the render triangles round each node, normalised (zero where they cancel).
+    /// Outward on a superquadric.
+    pub fn vertex_normals(&self, x: &[DVec3], out: &mut Vec<DVec3>) {
+        out.clear();
+        out.resize(x.len(), DVec3::ZERO);
+        for &[a, b, c] in &self.tris {
+            let (pa, pb, pc) = (x[a as usize], x[b as usize], x[c as usize]);
+            let n = (pb - pa).cross(pc - pa);
+            for i in [a, b, c] {
+                out[i as usize] += n;
+            }
+        }
+        for n in out.iter_mut() {
+            *n = n.normalize_or_zero();
+        }
+    }
+
     /// The render triangulation: each quad split in two and a fan at each pole, wound so that
     /// (B − A) × (C − A) points outward on a superquadric. 2k² triangles.
     pub fn triangles(&self) -> &[[u32; 3]] {
@@ -703,6 +721,21 @@ mod tests {
             for (i, (a, b)) in fast.iter().zip(&reference).enumerate() {
                 assert!((*a - *b).length() < 1e-13, "k {k} node {i}: {a} vs {b}");
             }
+        }
+    }
+
+    #[test]
+    fn vertex_normals_of_a_sphere_point_outward_along_the_radius() {
+        let t = Tessellation::new(24);
+        let x: Vec<DVec3> = t
+            .trig
+            .iter()
+            .map(|g| 2.0 * DVec3::new(g.cu * g.cv, g.cu * g.sv, g.su))
+            .collect();
+        let mut n = Vec::new();
+        t.vertex_normals(&x, &mut n);
+        for (i, (p, n)) in x.iter().zip(&n).enumerate() {
+            assert!(n.dot(p.normalize()) > 0.995, "node {i}: {n} at {p}");
         }
     }
 

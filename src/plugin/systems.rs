@@ -123,6 +123,7 @@ pub fn reassign(
                         (false, None, Some(stage)) => {
                             let clock = StageClock::new(stage);
                             range.forces.coverage = clock.coverage(&driver.options);
+                            range.forces.plane = clock.plane(&driver.options);
                             settings.set_if_neq(ModelSettings {
                                 global_only: !clock.local_free(&driver.options),
                                 ..*settings

@@ -22,6 +22,17 @@
 //! data). It is the model-to-data half of a symmetric (Chamfer) distance; `coverage = 0` gives the
 //! paper's forces exactly. On one-view data the coverage springs also pull the unseen back towards
 //! the data, so the fit loop uses them only to place the model and then switches them off.
+//!
+//! **Point-to-plane springs (beyond the paper).** A data point attached to a node pulls that node
+//! onto itself, so a superquadric fitted with nearest-node springs is pinned to the nodes the
+//! points chose: between nodes the surface cannot pass through the data, and the global fit is
+//! biased by the node spacing. With `plane` set, each spring becomes w ((1 − μ) n nᵀ + μ I)(r − x)
+//! with n the surface normal at its point of influence and μ = [`TANGENT_FRACTION`]: it pulls
+//! mainly across the surface and lets the surface slide along itself. It acts on the global DOFs
+//! only, and adds (1 − μ) w (Lᵀn)(Lᵀn)ᵀ + μ w LᵀL to the global damping block (through
+//! `NodalForces::plane_stiffness`), so the global step stays a Gauss–Newton step on this energy.
+//! μ > 0 matters: with μ = 0 the model is free to stretch along the data between reattachments
+//! (on EMS's noisy clouds it grew without bound); μ = 0.3 fitted all six EMS clouds to rest.
 
 use crate::model::dynamics::NodalForces;
 use crate::model::fem::{ElementPoint, Tessellation};
@@ -68,6 +79,22 @@ pub struct RangeForces {
     pub coverage: f64,
     /// Nearest data point of each node, refreshed with the points of influence.
     pub node_targets: Vec<u32>,
+    /// Point-to-plane springs on the global DOFs (beyond the paper; see the module docs): each
+    /// spring pulls only along the surface normal at its point of influence, and acts on the
+    /// global DOFs only. `false` (the default) gives the paper's springs.
+    pub plane: bool,
+}
+
+/// The tangential stiffness of a point-to-plane spring as a fraction μ of its normal stiffness:
+/// the spring is w ((1 − μ) n nᵀ + μ I) d. A pure point-to-plane spring (μ = 0) leaves the
+/// surface free to slide along itself, and with points attached to nodes a model then stretches
+/// away along the data between reattachments; μ keeps the energy bounded.
+pub const TANGENT_FRACTION: f64 = 0.3;
+
+/// The point-to-plane spring force per unit stiffness for offset `d` and unit normal `n`:
+/// ((1 − μ) n nᵀ + μ I) d with μ = [`TANGENT_FRACTION`].
+fn plane_spring(d: DVec3, n: DVec3) -> DVec3 {
+    (1.0 - TANGENT_FRACTION) * n.dot(d) * n + TANGENT_FRACTION * d
 }
 
 /// Default coverage-spring density as a fraction of β.
@@ -118,6 +145,7 @@ impl RangeForces {
             influence: Vec::new(),
             coverage: DEFAULT_COVERAGE,
             node_targets: Vec::new(),
+            plane: false,
         }
     }
 
@@ -180,39 +208,90 @@ impl RangeForces {
     }
 
     /// Adds every spring w (r − x(u_r)) to `out`, spread to the element's nodes by N_i (eq. 22),
-    /// with stiffness w, and the coverage springs to `out.shape_force`. Does nothing before the
-    /// first [`Self::reassign`].
+    /// with stiffness w, and the coverage springs to `out.shape_force`. With `plane`, every spring
+    /// keeps only its component along the surface normal n (from [`Tessellation::vertex_normals`],
+    /// written to `out.plane_normal`) and goes to `out.shape_force` with stiffness
+    /// `out.plane_stiffness`: the global DOFs only. Does nothing before the first
+    /// [`Self::reassign`].
     pub fn accumulate(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut NodalForces) {
         let w = self.point_weight(tess);
-        for (r, inf) in self.points.iter().zip(&self.influence) {
-            let x = inf.at.interpolate(|k| node_x[k]);
-            out.add(&inf.at, w * (*r - x), w);
+        if self.plane {
+            tess.vertex_normals(node_x, &mut out.plane_normal);
+            for (r, inf) in self.points.iter().zip(&self.influence) {
+                let at = &inf.at;
+                let x = at.interpolate(|k| node_x[k]);
+                let n = at.interpolate(|k| out.plane_normal[k]).normalize_or_zero();
+                let f = w * plane_spring(*r - x, n);
+                for k in 0..4 {
+                    let nk = at.weights[k];
+                    if nk != 0.0 {
+                        let node = at.nodes[k] as usize;
+                        out.shape_force[node] += nk * f;
+                        out.plane_stiffness[node] += (1.0 - TANGENT_FRACTION) * nk * w;
+                        out.shape_stiffness[node] += TANGENT_FRACTION * nk * w;
+                    }
+                }
+            }
+        } else {
+            for (r, inf) in self.points.iter().zip(&self.influence) {
+                let x = inf.at.interpolate(|k| node_x[k]);
+                out.add(&inf.at, w * (*r - x), w);
+            }
         }
         for (i, &t) in self.node_targets.iter().enumerate() {
             let wi = self.coverage * self.beta * tess.node_area[i];
-            out.shape_force[i] += wi * (self.points[t as usize] - node_x[i]);
-            out.shape_stiffness[i] += wi;
+            let d = self.points[t as usize] - node_x[i];
+            if self.plane {
+                let n = out.plane_normal[i];
+                out.shape_force[i] += wi * plane_spring(d, n);
+                out.plane_stiffness[i] += (1.0 - TANGENT_FRACTION) * wi;
+                out.shape_stiffness[i] += TANGENT_FRACTION * wi;
+            } else {
+                out.shape_force[i] += wi * d;
+                out.shape_stiffness[i] += wi;
+            }
         }
     }
 
-    /// The springs' potential energy ½ w Σ |r − x(u_r)|² plus that of the coverage springs.
+    /// The springs' potential energy ½ w Σ |r − x(u_r)|² plus that of the coverage springs; with
+    /// `plane`, ½ w Σ dᵀ ((1 − μ) n nᵀ + μ I) d for d = r − x(u_r).
     pub fn energy(&self, tess: &Tessellation, node_x: &[DVec3]) -> f64 {
         let w = self.point_weight(tess);
+        let mut normals = Vec::new();
+        if self.plane {
+            tess.vertex_normals(node_x, &mut normals);
+        }
+        let normal_at = |at: &ElementPoint| at.interpolate(|k| normals[k]).normalize_or_zero();
+        let sq = |d: DVec3, n: DVec3| {
+            if self.plane {
+                d.dot(plane_spring(d, n))
+            } else {
+                d.length_squared()
+            }
+        };
         let data: f64 = self
             .points
             .iter()
             .zip(&self.influence)
-            .map(|(r, inf)| inf.at.interpolate(|k| node_x[k]).distance_squared(*r))
+            .map(|(r, inf)| {
+                let n = if self.plane {
+                    normal_at(&inf.at)
+                } else {
+                    DVec3::ZERO
+                };
+                sq(*r - inf.at.interpolate(|k| node_x[k]), n)
+            })
             .sum();
         let cover: f64 = self
             .node_targets
             .iter()
             .enumerate()
             .map(|(i, &t)| {
+                let n = normals.get(i).copied().unwrap_or_default();
                 self.coverage
                     * self.beta
                     * tess.node_area[i]
-                    * node_x[i].distance_squared(self.points[t as usize])
+                    * sq(self.points[t as usize] - node_x[i], n)
             })
             .sum();
         0.5 * (w * data + cover)
