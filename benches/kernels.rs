@@ -4,19 +4,24 @@
 use bevy::math::{DQuat, DVec3};
 use bevy::prelude::*;
 use bevy::time::TimeUpdateStrategy;
-use bevy_deformable_sq::io::load_points;
+use bevy_deformable_sq::io::{load_luminance, load_points};
 use bevy_deformable_sq::model::dynamics::{
     DynamicsParams, ModelState, NodalForces, Workspace, step_prepared,
 };
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{FitOptions, fit};
+use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::forces::range::{InfluenceMode, RangeForces, nearest_indices};
+use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment};
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use std::alloc::{GlobalAlloc, Layout, System};
 use std::hint::black_box;
 use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
 fn target() -> SuperquadricParams {
@@ -137,14 +142,20 @@ fn ems_fits(c: &mut Criterion) {
     g.finish();
 }
 
-/// Eleven 963-node models in one headless app, one FixedUpdate step each per update (range
-/// springs on 500 points each; image forces are not implemented yet).
-fn app_step(c: &mut Criterion) {
+/// A headless app, one `update` = one simulation step of every model (models spread over the
+/// cores by the plugin's parallel systems).
+fn headless_app() -> App {
     let mut app = App::new();
     app.add_plugins((MinimalPlugins, DeformableSqPlugin::in_schedule(Update)));
     app.insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_millis(
         16,
     )));
+    app
+}
+
+/// Eleven 963-node models in one headless app with range springs on 500 points each.
+fn app_step(c: &mut Criterion) {
+    let mut app = headless_app();
     for i in 0..11 {
         let centre = DVec3::new(i as f64 * 3.0, 0.0, 0.0);
         let pts = superquadric_cloud(&target(), centre, DQuat::IDENTITY, 500, 0.01, i);
@@ -161,5 +172,97 @@ fn app_step(c: &mut Criterion) {
     c.bench_function("app_step/11_models_963_nodes", |b| b.iter(|| app.update()));
 }
 
-criterion_group!(benches, euler_step, reassignment, app_step, ems_fits);
+/// The sandbox's load as the speed issue states it: the doll experiment's 11 parts (963 nodes
+/// each) on the horse image with the experiment's image forces, one simulation step each.
+fn app_step_image(c: &mut Criterion) {
+    let e = doll_experiment();
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(e.image);
+    let (w, h, lum) = load_luminance(&path).expect("shipped image");
+    let potential = Arc::new(
+        ImagePotential::new(w, h, lum, e.sigma, ImageFrame::default()).expect("potential"),
+    );
+    let mut app = headless_app();
+    let settings = ModelSettings {
+        planar: true,
+        fix_epsilon: true,
+        ..default()
+    };
+    for (_, pts) in &e.parts {
+        let axes = PartAxes::from_points(&potential, *pts).expect("placement");
+        let (translation, rotation, shape) = axes.pose();
+        app.world_mut().spawn((
+            GlobalShape::from(shape),
+            RigidState {
+                translation,
+                rotation,
+            },
+            FemMesh::new(e.options.k),
+            settings,
+            ImageData::new(potential.clone()).with_options(&e.options),
+        ));
+    }
+    app.update();
+    c.bench_function("app_step/11_models_963_nodes_image", |b| {
+        b.iter(|| app.update())
+    });
+}
+
+/// Counts the heap bytes in use, so that `memory_per_node` measures rather than estimates.
+struct CountingAlloc;
+
+static IN_USE: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for CountingAlloc {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        IN_USE.fetch_add(layout.size(), Ordering::Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        IN_USE.fetch_sub(layout.size(), Ordering::Relaxed);
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static ALLOC: CountingAlloc = CountingAlloc;
+
+/// Memory per node: heap bytes held by a model ready to step (tessellation, state, nodal forces,
+/// workspace after one step), over its node count; the range data on top, per data point.
+fn memory_per_node(_: &mut Criterion) {
+    for (k, m) in [(31, 1000), (71, 5000), (316, 100_000)] {
+        let before = IN_USE.load(Ordering::Relaxed);
+        let tess = Tessellation::new(k);
+        let mut state = ModelState::new(&tess, DVec3::ZERO, DQuat::IDENTITY, target());
+        let (mut forces, mut ws) = (NodalForces::new(tess.node_count()), Workspace::default());
+        let params = DynamicsParams::default();
+        forces.clear(tess.node_count());
+        ws.prepare(&tess, &state);
+        step_prepared(&tess, &mut state, &forces, &params, &mut ws).expect("finite");
+        let model = IN_USE.load(Ordering::Relaxed) - before;
+        let mut range = RangeForces::new(
+            superquadric_cloud(&target(), DVec3::ZERO, DQuat::IDENTITY, m, 0.01, 7),
+            4.0,
+            InfluenceMode::NearestNode,
+        );
+        range.reassign(&tess, ws.world_positions());
+        let data = IN_USE.load(Ordering::Relaxed) - before - model;
+        println!(
+            "memory_per_node/{}n_{m}p: {:.0} bytes per node (model), {:.0} bytes per data point",
+            tess.node_count(),
+            model as f64 / tess.node_count() as f64,
+            data as f64 / m as f64,
+        );
+        black_box((tess, state, forces, ws, range));
+    }
+}
+
+criterion_group!(
+    benches,
+    euler_step,
+    reassignment,
+    app_step,
+    app_step_image,
+    memory_per_node,
+    ems_fits
+);
 criterion_main!(benches);
