@@ -4,7 +4,7 @@
 //! cargo run --release --example fit -- (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll)
 //!     [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] [--max-steps N] [--out-mesh FILE.obj]
 //!     [--out-params FILE.json] [--quiet]
-//!     points only: [--global-only] [--plane] [--migrate] [--reassign N] [--app]
+//!     points only: [--global-only] [--plane] [--outliers F] [--migrate] [--reassign N] [--app]
 //!     images only: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth]
 //!                  [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]
 //!     scenes only: [--out-scene FILE.dsq.ron]
@@ -49,7 +49,7 @@ use std::time::Duration;
 use std::time::Instant;
 
 const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] \
-[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--plane] [--migrate] [--reassign N] [--app]; \
+[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--plane] [--outliers F] [--migrate] [--reassign N] [--app]; \
 images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]; scenes: [--out-scene FILE.dsq.ron]";
 
 /// Where the data come from.
@@ -202,6 +202,14 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
             }
             "--global-only" => o.global_only = true,
             "--plane" => o.point_to_plane = true,
+            "--outliers" => {
+                let v = args.next().ok_or("--outliers needs a fraction in [0, 1)")?;
+                o.outlier_ratio = v
+                    .parse()
+                    .ok()
+                    .filter(|f: &f64| (0.0..1.0).contains(f))
+                    .ok_or(format!("--outliers {v}: expected a fraction in [0, 1)"))?;
+            }
             "--migrate" => o.influence = InfluenceMode::Migrating { rate: 0.5 },
             "--quiet" => quiet = true,
             "--app" => app = true,

@@ -317,6 +317,10 @@ pub enum Forces {
         /// Nearest node (the paper) or migrating points of influence (Fig. 3).
         #[serde(default)]
         influence: InfluenceMode,
+        /// Prior fraction of outliers in [0, 1) for outlier-robust spring weights
+        /// (`forces::range::Robust`; 0: the paper's equal weights).
+        #[serde(default)]
+        outliers: f64,
         /// Only the source's points inside this world box pull on this part (a part of a
         /// multi-part object).
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -809,7 +813,15 @@ impl PartDef {
                 coverage,
                 influence,
                 crop,
+                outliers,
             } => {
+                if !(0.0..1.0).contains(outliers) {
+                    return Err(SceneError::at_field(
+                        file,
+                        f("forces.outliers"),
+                        format!("must lie in [0, 1), found {outliers}"),
+                    ));
+                }
                 if matches!(source(name)?, DataSource::Image { .. }) {
                     return Err(SceneError::at_field(
                         file,
@@ -926,14 +938,20 @@ impl PartDef {
     /// The options of a range fit of this part from `start` (in world space).
     pub fn fit_options(&self, start: &ModelState) -> FitOptions {
         let defaults = FitOptions::default();
-        let (beta, coverage, influence) = match &self.forces {
+        let (beta, coverage, influence, outlier_ratio) = match &self.forces {
             Forces::Range {
                 beta,
                 coverage,
                 influence,
+                outliers,
                 ..
-            } => (*beta, *coverage, *influence),
-            _ => (defaults.beta, defaults.coverage, defaults.influence),
+            } => (*beta, *coverage, *influence, *outliers),
+            _ => (
+                defaults.beta,
+                defaults.coverage,
+                defaults.influence,
+                defaults.outlier_ratio,
+            ),
         };
         FitOptions {
             k: self.k,
@@ -941,6 +959,7 @@ impl PartDef {
             beta,
             influence,
             coverage,
+            outlier_ratio,
             reassign_every: self.reassign_every,
             max_steps: self.fit.max_steps.unwrap_or(defaults.max_steps),
             tolerance: self.fit.tolerance.unwrap_or(defaults.tolerance),

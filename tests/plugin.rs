@@ -400,11 +400,17 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
         0.01,
         77,
     );
-    for (global_only, point_to_plane) in [(true, false), (false, false), (true, true)] {
+    for (global_only, point_to_plane, outlier_ratio) in [
+        (true, false, 0.0),
+        (false, false, 0.0),
+        (true, true, 0.0),
+        (false, false, 0.2),
+    ] {
         let opts = FitOptions {
             k: 11,
             global_only,
             point_to_plane,
+            outlier_ratio,
             ..Default::default()
         };
         let core = fit(&points, &opts, |_| {}).expect("core fit");

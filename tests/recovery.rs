@@ -232,3 +232,42 @@ fn point_to_plane_springs_fit_a_clean_partial_cloud_more_closely_than_nearest_no
         plane.residuals.mean
     );
 }
+
+#[test]
+fn robust_weights_ignore_twenty_percent_outliers() {
+    // 800 surface points with a little noise, then 200 outliers (20 %) uniform in a box twice the
+    // object's size: with robust weights the fit to the inliers is nearly that of the clean
+    // cloud; with the paper's equal weights the outliers drag it clearly off.
+    let (shape, c, r) = truth();
+    let inliers = superquadric_cloud(&shape, c, r, 800, 0.005, 21);
+    let mut seed = 99u64;
+    let mut next = || {
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (seed >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    };
+    let half = shape.semi_axes().max_element() * 2.0;
+    let mut noisy = inliers.clone();
+    noisy.extend((0..200).map(|_| c + half * DVec3::new(next(), next(), next())));
+    let inlier_mean = |report: &FitReport| {
+        let mut x = Vec::new();
+        report.state.node_positions(&report.tess, &mut x);
+        let d = point_distances(&report.tess, &x, &inliers);
+        d.iter().sum::<f64>() / d.len() as f64
+    };
+    let run = |points: &[DVec3], outlier_ratio: f64| {
+        let opts = FitOptions {
+            global_only: true,
+            outlier_ratio,
+            ..Default::default()
+        };
+        fit(points, &opts, |_| {}).expect("fit")
+    };
+    let clean = inlier_mean(&run(&inliers, 0.0));
+    let robust = inlier_mean(&run(&noisy, 0.2));
+    let plain = inlier_mean(&run(&noisy, 0.0));
+    eprintln!("inlier mean distance: clean {clean:.4}, robust {robust:.4}, plain {plain:.4}");
+    assert!(robust < 1.5 * clean, "robust {robust} vs clean {clean}");
+    assert!(plain > 2.0 * robust, "plain {plain} vs robust {robust}");
+}

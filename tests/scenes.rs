@@ -277,6 +277,37 @@ fn negative_stiffness_is_refused_with_the_field() {
 }
 
 #[test]
+fn an_outlier_fraction_of_one_or_more_is_refused_and_a_valid_one_reaches_the_fit() {
+    let e = parse_err(&scene_text(
+        &GOOD_PART.replace(
+            r#"Range(data: "pts")"#,
+            r#"Range(data: "pts", outliers: 1.5)"#,
+        ),
+        PTS,
+    ));
+    assert_names(&e, Some("parts[0].forces.outliers"), None, "found 1.5");
+    let def = SceneDef::parse(
+        &scene_text(
+            &GOOD_PART.replace(
+                r#"Range(data: "pts")"#,
+                r#"Range(data: "pts", outliers: 0.2)"#,
+            ),
+            PTS,
+        ),
+        Path::new("good.dsq.ron"),
+    )
+    .unwrap();
+    let part = &def.parts[0];
+    let start = bevy_deformable_sq::model::dynamics::ModelState::new(
+        &bevy_deformable_sq::model::fem::Tessellation::new(part.k),
+        DVec3::ZERO,
+        DQuat::IDENTITY,
+        Default::default(),
+    );
+    assert_eq!(part.fit_options(&start).outlier_ratio, 0.2);
+}
+
+#[test]
 fn k_below_3_is_refused_with_the_field() {
     let e = parse_err(&scene_text(&GOOD_PART.replace("k: 5", "k: 2"), PTS));
     assert_names(&e, Some("parts[0].k"), None, "found 2");

@@ -26,7 +26,7 @@ use super::dynamics::{
     DynamicsParams, ModelState, NodalForces, StepError, Workspace, step_prepared,
 };
 use super::fem::Tessellation;
-use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces};
+use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces, Robust};
 use super::init::{InitialPose, initial_pose, moments};
 use bevy::math::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -77,6 +77,9 @@ pub struct FitOptions {
     /// points chose, which makes global-only fits of clean data several times more accurate.
     /// Off by default (the paper's springs); the placing and joint stages always use those.
     pub point_to_plane: bool,
+    /// Prior fraction of outliers for the outlier-robust spring weights (`forces::range::Robust`);
+    /// 0 gives the paper's equal weights.
+    pub outlier_ratio: f64,
     /// Initial pose and shape.
     pub init: Initialization,
 }
@@ -103,6 +106,7 @@ impl Default for FitOptions {
             global_first: true,
             global_only: false,
             point_to_plane: false,
+            outlier_ratio: 0.0,
             init: Initialization::Moments,
         }
     }
@@ -291,6 +295,11 @@ pub fn validate_options(o: &FitOptions) -> Result<(), FitError> {
         ("tolerance", o.tolerance, o.tolerance > 0.0),
         ("coverage", o.coverage, o.coverage >= 0.0),
         (
+            "outlier_ratio",
+            o.outlier_ratio,
+            (0.0..1.0).contains(&o.outlier_ratio),
+        ),
+        (
             "settle_fraction",
             o.settle_fraction,
             (0.0..1.0).contains(&o.settle_fraction),
@@ -453,6 +462,7 @@ impl<'a> Relaxation<'a> {
         );
         let mut range = RangeForces::new(unit.to_vec(), opts.beta, opts.influence);
         range.coverage = 0.0;
+        range.robust = (opts.outlier_ratio > 0.0).then(|| Robust::new(opts.outlier_ratio));
         let mut x = Vec::new();
         state.node_positions(tess, &mut x);
         Self {

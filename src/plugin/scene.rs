@@ -23,6 +23,7 @@ use super::{
 use crate::model::dynamics::ModelState;
 use crate::model::fit::{Normalization, Stage, global_stages, has_joint_stage};
 use crate::model::forces::range::RangeForces;
+use crate::model::forces::range::Robust;
 use crate::scene::{Forces, PartDef, SCENE_EXTENSION, SceneData, SceneDef, SceneError};
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext, LoadState};
@@ -197,6 +198,7 @@ fn spawn_part(
             beta,
             coverage,
             influence,
+            outliers,
             ..
         } => {
             let points = scene.data.range_points(part).unwrap_or_default();
@@ -209,6 +211,7 @@ fn spawn_part(
             }
             let mut forces = RangeForces::new(points, *beta, *influence);
             forces.coverage = *coverage;
+            forces.robust = (*outliers > 0.0).then(|| Robust::new(*outliers));
             e.insert((
                 RangeData {
                     forces,

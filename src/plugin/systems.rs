@@ -5,6 +5,7 @@
 use super::components::*;
 use crate::model::dynamics::step;
 use crate::model::fit::{Stage, StageClock, max_motion};
+use crate::model::forces::range::Robust;
 use crate::model::superquadric::SuperquadricParams;
 use bevy::math::DVec3;
 use bevy::prelude::*;
@@ -124,6 +125,10 @@ pub fn reassign(
                             let clock = StageClock::new(stage);
                             range.forces.coverage = clock.coverage(&driver.options);
                             range.forces.plane = clock.plane(&driver.options);
+                            let ratio = driver.options.outlier_ratio;
+                            if ratio > 0.0 && range.forces.robust.is_none() {
+                                range.forces.robust = Some(Robust::new(ratio));
+                            }
                             settings.set_if_neq(ModelSettings {
                                 global_only: !clock.local_free(&driver.options),
                                 ..*settings
