@@ -7,11 +7,16 @@ use std::process::{Command, Output};
 
 /// The example binary that `cargo test` builds next to the test binaries.
 fn fit_binary() -> PathBuf {
+    example_binary("fit")
+}
+
+/// An example binary that `cargo test` builds next to the test binaries.
+fn example_binary(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("test binary path");
     let dir = exe.parent().and_then(Path::parent).expect("target dir");
     let bin = dir
         .join("examples")
-        .join(format!("fit{}", std::env::consts::EXE_SUFFIX));
+        .join(format!("{name}{}", std::env::consts::EXE_SUFFIX));
     assert!(
         bin.exists(),
         "{} not built; cargo test builds examples",
@@ -330,5 +335,28 @@ fn the_scene_runner_fits_every_part_and_writes_mesh_params_and_scene() {
         assert!(def.parts[i].local.is_some());
         assert_ne!(def.parts[i].placement, orig.parts[i].placement);
         assert_eq!(def.parts[i].forces, orig.parts[i].forces);
+    }
+}
+
+#[test]
+fn the_index_example_finds_each_complete_objects_own_library_part() {
+    // examples/index.rs: descriptors of fitted parts, the nearest library part for each query.
+    let out = Command::new(example_binary("index"))
+        .output()
+        .expect("run index");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    for (query, own) in [
+        ("cow back leg 2", "cow back leg 1"),
+        ("cow fore leg 2", "cow fore leg 1"),
+        ("egg, rescanned", "egg"),
+        ("mug, rescanned", "mug"),
+    ] {
+        let line = text
+            .lines()
+            .find(|l| l.starts_with(query))
+            .unwrap_or_else(|| panic!("no line for {query}: {text}"));
+        let nearest = line.split('→').nth(1).unwrap_or("").trim_start();
+        assert!(nearest.starts_with(&format!("{own} ")), "{line}");
     }
 }

@@ -5,8 +5,10 @@
 //! Read top to bottom: [`superquadric`] (s, J) → [`frame`] (R, B) → [`fem`] (tessellation,
 //! element stiffness, K q) → [`dynamics`] (f_q, C, the Euler step) → [`forces`] (range springs, image
 //! potentials) → [`init`] (moments) → [`fit`] (the loop to equilibrium for range data) →
-//! [`image_fit`] (parts fitted to an image).
+//! [`image_fit`] (parts fitted to an image) → [`descriptor`] (fitted parts compared by their
+//! global parameters).
 
+pub mod descriptor;
 pub mod dynamics;
 pub mod fem;
 pub mod fit;
