@@ -360,3 +360,28 @@ fn the_index_example_finds_each_complete_objects_own_library_part() {
         assert!(nearest.starts_with(&format!("{own} ")), "{line}");
     }
 }
+
+#[test]
+fn the_ems_comparison_example_prints_a_row_per_cloud() {
+    let out = Command::new(example_binary("compare_ems"))
+        .output()
+        .expect("run compare_ems");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    let rows: Vec<&str> = text
+        .lines()
+        .filter(|l| l.contains("pointCloud_example"))
+        .collect();
+    assert_eq!(rows.len(), 6, "{text}");
+    for row in rows {
+        // Every residual cell parses as two finite numbers.
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        for cell in &cells[2..6] {
+            let v: Vec<f64> = cell.split('/').map(|x| x.trim().parse().unwrap()).collect();
+            assert!(
+                v.len() == 2 && v.iter().all(|x| x.is_finite() && *x >= 0.0),
+                "{row}"
+            );
+        }
+    }
+}
