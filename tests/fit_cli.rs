@@ -385,3 +385,30 @@ fn the_ems_comparison_example_prints_a_row_per_cloud() {
         }
     }
 }
+
+#[test]
+fn points_with_parts_fit_several_parts_and_give_every_point_to_one() {
+    // The cow mesh's vertices in 3 parts: a line per part, then one for the whole.
+    let cow = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/data/cow.obj");
+    let out = run(&[cow, "--parts", "3"]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    let lines: Vec<serde_json::Value> = text
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("JSON line"))
+        .collect();
+    assert_eq!(lines.len(), 4, "{text}");
+    let owned: u64 = lines[..3]
+        .iter()
+        .map(|l| l["points"].as_u64().unwrap())
+        .sum();
+    assert_eq!(
+        owned,
+        lines[3]["points"].as_u64().unwrap(),
+        "every point in one part"
+    );
+    for (j, l) in lines[..3].iter().enumerate() {
+        assert_eq!(l["part"].as_u64(), Some(j as u64));
+        assert!(l["mean"].as_f64().unwrap() < 0.05, "{l}");
+    }
+}
