@@ -397,19 +397,6 @@ pub fn for_each_outline_edge(tess: &Tessellation, x: &[DVec3], mut f: impl FnMut
     }
 }
 
-/// Area-weighted outward normals of the nodes (unnormalised) from the render triangulation.
-pub fn vertex_normals(tess: &Tessellation, x: &[DVec3]) -> Vec<DVec3> {
-    let mut n = vec![DVec3::ZERO; x.len()];
-    for t in tess.triangles() {
-        let [a, b, c] = t.map(|i| x[i as usize]);
-        let face = (b - a).cross(c - a);
-        for &i in t {
-            n[i as usize] += face;
-        }
-    }
-    n
-}
-
 /// The image forces on one model: a shared potential, the strength β and the band.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ImageForces {
@@ -477,7 +464,8 @@ impl ImageForces {
         if self.region > 0.0 {
             let sigma_w = self.potential.sigma() * self.potential.pitch();
             let push = self.region * self.beta * self.potential.p_ref() / sigma_w;
-            let normals = vertex_normals(tess, node_x);
+            let mut normals = Vec::new();
+            tess.vertex_normals(node_x, &mut normals);
             for (i, &x) in node_x.iter().enumerate() {
                 let n = normals[i].truncate().normalize_or_zero();
                 if acting[i] && n != DVec2::ZERO {
