@@ -579,7 +579,7 @@ fn axis_hypotheses(pose: &InitialPose) -> [InitialPose; 3] {
 /// Runs `job` on every item, spread over the available cores (each worker takes the next item);
 /// the calling thread works too and is the only one that reports `progress`. Results come back in
 /// the items' order, so the outcome does not depend on the scheduling.
-fn run_parallel<I: Sync, R: Send>(
+pub(crate) fn run_parallel<I: Sync, R: Send>(
     items: &[I],
     job: impl Fn(&I, &mut dyn FnMut(&FitProgress)) -> R + Sync,
     progress: &mut dyn FnMut(&FitProgress),
@@ -590,13 +590,16 @@ fn run_parallel<I: Sync, R: Send>(
         .map_or(1, |n| n.get())
         .min(items.len());
     let next = AtomicUsize::new(0);
-    let results: Mutex<Vec<Option<R>>> = Mutex::new((0..items.len()).map(|_| None).collect());
+    let results: Mutex<Vec<(usize, R)>> = Mutex::new(Vec::with_capacity(items.len()));
     let work = |progress: &mut dyn FnMut(&FitProgress)| {
         loop {
             let i = next.fetch_add(1, Ordering::Relaxed);
             let Some(item) = items.get(i) else { break };
             let r = job(item, progress);
-            results.lock().unwrap_or_else(|e| e.into_inner())[i] = Some(r);
+            results
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push((i, r));
         }
     };
     std::thread::scope(|scope| {
@@ -605,12 +608,9 @@ fn run_parallel<I: Sync, R: Send>(
         }
         work(progress);
     });
-    results
-        .into_inner()
-        .unwrap_or_else(|e| e.into_inner())
-        .into_iter()
-        .map(|r| r.expect("every item was run"))
-        .collect()
+    let mut results = results.into_inner().unwrap_or_else(|e| e.into_inner());
+    results.sort_by_key(|(i, _)| *i);
+    results.into_iter().map(|(_, r)| r).collect()
 }
 
 /// Fits a deformable superquadric to `points`, calling `progress` every 100 steps.

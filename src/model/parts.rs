@@ -10,7 +10,7 @@
 //! cluster; later rounds start each part from its last fit.
 
 use super::fit::{
-    FitError, FitOptions, FitReport, Initialization, MIN_POINTS, fit, point_distances,
+    FitError, FitOptions, FitReport, Initialization, MIN_POINTS, fit, point_distances, run_parallel,
 };
 use super::init::InitialPose;
 use bevy::math::DVec3;
@@ -183,33 +183,27 @@ fn members_of(points: &[DVec3], owner: &[usize], k: usize) -> Vec<Vec<DVec3>> {
         .collect()
 }
 
-/// Fits every part to its points from its start, the parts in parallel.
+/// Fits every part to its points from its start, the parts spread over the cores.
 fn fit_each(
     members: &[Vec<DVec3>],
     starts: &[Initialization],
     opts: &FitOptions,
 ) -> Result<Vec<FitReport>, FitError> {
-    let results: Vec<Result<FitReport, FitError>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = members
-            .iter()
-            .zip(starts)
-            .map(|(m, init)| {
-                let o = FitOptions {
-                    init: *init,
-                    ..*opts
-                };
-                scope.spawn(move || fit(m, &o, |_| {}))
-            })
-            .collect();
-        handles
-            .into_iter()
-            .map(|h| {
-                h.join()
-                    .unwrap_or_else(|_| Err(FitError::BadOption("a part's fit panicked".into())))
-            })
-            .collect()
-    });
-    results.into_iter().collect()
+    let jobs: Vec<(&Vec<DVec3>, Initialization)> =
+        members.iter().zip(starts.iter().copied()).collect();
+    run_parallel(
+        &jobs,
+        |(m, init), _| {
+            let o = FitOptions {
+                init: *init,
+                ..*opts
+            };
+            fit(m, &o, |_| {})
+        },
+        &mut |_| {},
+    )
+    .into_iter()
+    .collect()
 }
 
 #[cfg(test)]
