@@ -23,7 +23,7 @@
 //! projected silhouettes with the thresholded foreground.
 
 use super::dynamics::{
-    DynamicsParams, FreeDofs, ModelState, NodalForces, StepError, Workspace, step,
+    DynamicsParams, FreeDofs, ModelState, NodalForces, StepError, Workspace, step_prepared,
 };
 use super::fem::Tessellation;
 use super::fit::max_motion;
@@ -428,7 +428,7 @@ pub fn fit_part(
     let outline_before = outline_potential(&forces.potential, &[(tess, &x)]);
     let mut ws = Workspace::default();
     let mut nf = NodalForces::new(tess.node_count());
-    let mut x_new = Vec::new();
+    ws.prepare(tess, &state);
     let stages: &[bool] = if opts.global_first {
         &[false, true]
     } else {
@@ -444,12 +444,14 @@ pub fn fit_part(
         while steps < opts.max_steps {
             nf.clear(tess.node_count());
             forces.accumulate(tess, &x, &mut nf);
-            step(tess, &mut state, &nf, &params, &mut ws)?;
+            step_prepared(tess, &mut state, &nf, &params, &mut ws)?;
             steps += 1;
             global_steps += !local as usize;
-            state.node_positions(tess, &mut x_new);
-            let motion = max_motion(&x, &x_new);
-            std::mem::swap(&mut x, &mut x_new);
+            // The new state's node positions, computed once for the motion and the next forces.
+            let x_new = ws.prepare(tess, &state);
+            let motion = max_motion(&x, x_new);
+            x.clear();
+            x.extend_from_slice(x_new);
             if motion < rest {
                 at_rest = true;
                 break;

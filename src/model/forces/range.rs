@@ -209,11 +209,16 @@ impl RangeForces {
     /// inlier probabilities p of [`Robust`], so that the springs' total strength stays β |Ω|; 1
     /// without robust weights or before the first reassignment.
     pub fn relative_weight(&self, i: usize) -> f64 {
+        self.inlier_scale().map_or(1.0, |(p, scale)| p[i] * scale)
+    }
+
+    /// The inlier probabilities and m / Σ p, when robust weights are in force.
+    fn inlier_scale(&self) -> Option<(&[f64], f64)> {
         match &self.robust {
             Some(r) if r.inlier.len() == self.points.len() && r.inlier_sum > 0.0 => {
-                r.inlier[i] * self.points.len() as f64 / r.inlier_sum
+                Some((&r.inlier, self.points.len() as f64 / r.inlier_sum))
             }
-            _ => 1.0,
+            _ => None,
         }
     }
 
@@ -345,15 +350,13 @@ impl RangeForces {
     /// [`Self::reassign`].
     pub fn accumulate(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut NodalForces) {
         let w = self.point_weight(tess);
-        let weighted = self.robust.is_some();
+        // Each spring's constant: w, or w m p_i / Σ p with robust weights (looked up once here).
+        let robust = self.inlier_scale();
+        let w_of = |i: usize| robust.map_or(w, |(p, scale)| w * p[i] * scale);
         if self.plane {
             tess.vertex_normals(node_x, &mut out.plane_normal);
             for (i, (r, inf)) in self.points.iter().zip(&self.influence).enumerate() {
-                let w = if weighted {
-                    w * self.relative_weight(i)
-                } else {
-                    w
-                };
+                let w = w_of(i);
                 let at = &inf.at;
                 let x = at.interpolate(|k| node_x[k]);
                 let n = at.interpolate(|k| out.plane_normal[k]).normalize_or_zero();
@@ -370,11 +373,7 @@ impl RangeForces {
             }
         } else {
             for (i, (r, inf)) in self.points.iter().zip(&self.influence).enumerate() {
-                let w = if weighted {
-                    w * self.relative_weight(i)
-                } else {
-                    w
-                };
+                let w = w_of(i);
                 let x = inf.at.interpolate(|k| node_x[k]);
                 out.add(&inf.at, w * (*r - x), w);
             }
