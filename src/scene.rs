@@ -368,7 +368,7 @@ impl Aabb {
 #[serde(deny_unknown_fields, default)]
 pub struct FitSettings {
     /// Rest threshold on the largest node motion in a step (range: × the data's RMS radius;
-    /// image: × the image extent); unset: 1e-6 (range), 1e-5 (image).
+    /// image: × the image extent); unset: 1e-5 (both).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tolerance: Option<f64>,
     /// Step cap; unset: 20 000 (range), 3 000 (image).

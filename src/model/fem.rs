@@ -369,7 +369,8 @@ impl Tessellation {
         self.uv.len()
     }
 
-    /// The signed powers of shape `q` on the grid (see [`GridPowers`]): 2k + 4 `powf`s, where
+    /// The signed powers sgn(c)|c|^ε of eqs. (4, 5) for shape `q` on the grid (see
+    /// [`GridPowers`]): 2k + 4 `powf`s, where
     /// evaluating [`SignedPowers::new`] at every node would take 4(k² + 2).
     pub fn grid_powers(&self, q: &SuperquadricParams, out: &mut GridPowers) {
         let k = self.k;
