@@ -4,7 +4,8 @@
 //! cargo run --release --example fit -- (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll)
 //!     [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] [--max-steps N] [--out-mesh FILE.obj]
 //!     [--out-params FILE.json] [--quiet]
-//!     points only: [--global-only] [--plane] [--outliers F] [--migrate] [--reassign N] [--parts N] [--app]
+//!     points only: [--global-only] [--plane] [--outliers F] [--refine] [--switch] [--robust]
+//!                  [--migrate] [--reassign N] [--parts N] [--app]
 //!     images only: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth]
 //!                  [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]
 //!     scenes only: [--out-scene FILE.dsq.ron]
@@ -22,7 +23,9 @@
 //! Image fits print one JSON line per part, then one for the image
 //! (`outline_*`: mean P/P_ref along the projected outlines; `iou_*`: silhouettes vs foreground). `--app` runs the same fit through `DeformableSqPlugin` in a headless Bevy app
 //! (every initial hypothesis an entity, simulated in parallel); the result is the same. Progress goes to stderr; the last line
-//! on stdout is a one-line JSON summary. Bad input exits with code 2 and a one-line message.
+//! on stdout is a one-line JSON summary. `--robust` is `--outliers 0.2 --plane --refine --switch`
+//! (`FitOptions::robust`): the most accurate pure superquadric on partial or outlier-ridden clouds.
+//! Bad input exits with code 2 and a one-line message.
 
 use bevy::math::{DVec2, DVec3};
 use bevy_deformable_sq::io::{
@@ -50,7 +53,7 @@ use std::time::Duration;
 use std::time::Instant;
 
 const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] \
-[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--plane] [--outliers F] [--migrate] [--reassign N] [--parts N] [--app]; \
+[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--plane] [--outliers F] [--refine] [--switch] [--robust] [--migrate] [--reassign N] [--parts N] [--app]; \
 images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]; scenes: [--out-scene FILE.dsq.ron]";
 
 /// Where the data come from.
@@ -203,6 +206,9 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
             }
             "--global-only" => o.global_only = true,
             "--plane" => o.point_to_plane = true,
+            "--refine" => o.refine = true,
+            "--switch" => o.switch_cross_section = true,
+            "--robust" => o = o.robust(),
             "--outliers" => {
                 let v = args.next().ok_or("--outliers needs a fraction in [0, 1)")?;
                 o.outlier_ratio = v
@@ -293,6 +299,7 @@ fn run() -> Result<(), String> {
             let stage = match p.stage {
                 Stage::Cover => "placing",
                 Stage::Global => "global",
+                Stage::Refine => "refining",
                 Stage::Joint => "global+local",
             };
             let rate = p.step as f64 / start.elapsed().as_secs_f64().max(1e-9);

@@ -36,6 +36,16 @@ use std::num::NonZero;
 /// position, and the moments a few more to mean anything.
 pub const MIN_POINTS: usize = 10;
 
+/// Migration rate of the refining stage ([`Stage::Refine`]): each step moves a point of influence
+/// the whole Gauss–Newton way to the foot of its datum (at most one element).
+pub const REFINE_RATE: f64 = 1.0;
+
+/// Step budget of the refining stage. A refinement that is not at rest by then, or that leaves
+/// the points farther from the surface than the global stage did, is undone: on noisy clouds with
+/// outliers, points near a cylinder's rim can let its length run away (each cap point's closest
+/// surface point slides onto the side wall), a minimum of the one-sided distance that is no fit.
+pub const REFINE_MAX_STEPS: u32 = 3000;
+
 /// How the first superquadric is placed.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub enum Initialization {
@@ -80,6 +90,16 @@ pub struct FitOptions {
     /// Prior fraction of outliers for the outlier-robust spring weights (`forces::range::Robust`);
     /// 0 gives the paper's equal weights.
     pub outlier_ratio: f64,
+    /// After the global stage, refine the superquadric with points of influence that migrate to
+    /// their closest surface points ([`Stage::Refine`]): the global parameters then fit the
+    /// surface through the points rather than the nearest nodes, which on clean data makes a
+    /// pure superquadric fit one to two orders of magnitude closer (beyond the paper).
+    pub refine: bool,
+    /// After choosing the hypothesis, also try its cross-section dual (turned 45° about the model
+    /// axis with ε2 → 2 − ε2, see [`cross_section_dual`]) when ε2 is far from 1, and keep whichever
+    /// fits closer: a square section and a diamond one are each other's local minimum (EMS's
+    /// "similarity switching"; beyond the paper).
+    pub switch_cross_section: bool,
     /// Initial pose and shape.
     pub init: Initialization,
 }
@@ -107,10 +127,31 @@ impl Default for FitOptions {
             global_only: false,
             point_to_plane: false,
             outlier_ratio: 0.0,
+            refine: false,
+            switch_cross_section: false,
             init: Initialization::Moments,
         }
     }
 }
+
+impl FitOptions {
+    /// These options with everything that makes a fit robust to outliers and accurate on partial
+    /// clouds (all beyond the paper): outlier-robust weights with a prior outlier fraction of 0.2
+    /// (EMS's), point-to-plane springs in the global stage, the refining stage and the
+    /// cross-section switch. The fit example's `--robust`.
+    pub fn robust(self) -> Self {
+        Self {
+            outlier_ratio: ROBUST_OUTLIER_RATIO,
+            point_to_plane: true,
+            refine: true,
+            switch_cross_section: true,
+            ..self
+        }
+    }
+}
+
+/// The prior outlier fraction of [`FitOptions::robust`].
+pub const ROBUST_OUTLIER_RATIO: f64 = 0.2;
 
 /// Why a fit could not run.
 #[derive(Clone, Debug, PartialEq)]
@@ -158,6 +199,11 @@ pub enum Stage {
     Cover,
     /// Global DOFs only (local held), the paper's forces.
     Global,
+    /// Global DOFs only, after the hypothesis is chosen, with each point's point of influence
+    /// migrating to its closest point on the surface (the paper's Fig. 3) and point-to-plane
+    /// springs: the superquadric fitted to the points themselves instead of to the nodes they
+    /// chose (beyond the paper's experiments; [`FitOptions::refine`]).
+    Refine,
     /// Global and local DOFs together.
     Joint,
 }
@@ -352,7 +398,17 @@ impl StageClock {
     /// Whether the range springs are point-to-plane in this stage (the global stages, when
     /// `point_to_plane` is set).
     pub fn plane(&self, opts: &FitOptions) -> bool {
-        opts.point_to_plane && self.stage == Stage::Global
+        (opts.point_to_plane && self.stage == Stage::Global) || self.stage == Stage::Refine
+    }
+
+    /// How points of influence are chosen in this stage: migrating in the refining stage, the
+    /// options' mode otherwise.
+    pub fn influence(&self, opts: &FitOptions) -> InfluenceMode {
+        if self.stage == Stage::Refine {
+            InfluenceMode::Migrating { rate: REFINE_RATE }
+        } else {
+            opts.influence
+        }
     }
 
     /// Coverage-spring density in this stage (only the placing stage has them).
@@ -415,6 +471,41 @@ pub fn has_joint_stage(opts: &FitOptions) -> bool {
     !opts.global_only && opts.dynamics.free.local
 }
 
+/// How far ε2 must be from 1 (an elliptic cross-section, its own dual) before
+/// [`cross_section_dual`] offers a dual.
+pub const DUAL_EPSILON_GAP: f64 = 0.5;
+
+/// The cross-section dual of a fitted pose: the model turned 45° about its z axis, ε2 → 2 − ε2,
+/// and both section semi-axes set to their mean times √2 (a square section's dual diamond reaches
+/// its corners) or ÷ √2 (a diamond's dual square is inscribed). `None` when ε2 is within
+/// [`DUAL_EPSILON_GAP`] of 1, where the section is nearly elliptic and turning it changes little.
+pub fn cross_section_dual(pose: &InitialPose) -> Option<InitialPose> {
+    let q = pose.shape;
+    if (q.e2 - 1.0).abs() <= DUAL_EPSILON_GAP {
+        return None;
+    }
+    let half_section = 0.5 * (q.a1 + q.a2);
+    let section = if q.e2 < 1.0 {
+        half_section * std::f64::consts::SQRT_2
+    } else {
+        half_section / std::f64::consts::SQRT_2
+    };
+    let rotation = (pose.rotation
+        * bevy::math::DQuat::from_rotation_z(std::f64::consts::FRAC_PI_4))
+    .normalize();
+    let shape = super::superquadric::SuperquadricParams {
+        a1: section,
+        a2: section,
+        e2: 2.0 - q.e2,
+        ..q
+    };
+    Some(InitialPose {
+        translation: pose.translation,
+        rotation,
+        shape: shape.normalized(),
+    })
+}
+
 /// The initial states a fit tries: the three axis hypotheses of the moments frame, or the one
 /// explicit pose.
 pub fn initial_hypotheses(points: &[DVec3], opts: &FitOptions) -> Vec<InitialPose> {
@@ -432,6 +523,7 @@ pub fn mean_distance(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) ->
 }
 
 /// One model relaxing under range springs: the state of the loop between steps.
+#[derive(Clone)]
 struct Relaxation<'a> {
     tess: &'a Tessellation,
     opts: &'a FitOptions,
@@ -494,6 +586,7 @@ impl<'a> Relaxation<'a> {
         self.params.free.local = clock.local_free(self.opts);
         self.range.coverage = clock.coverage(self.opts);
         self.range.plane = clock.plane(self.opts);
+        self.range.mode = clock.influence(self.opts);
         self.range.reassign(tess, &self.x);
         self.reassignments += 1;
         self.ws.prepare(tess, &self.state);
@@ -652,10 +745,33 @@ pub fn fit(
             best = Some((score, relax, converged, *initial));
         }
     }
-    let Some((_, mut relax, mut converged, initial)) = best else {
+    let Some((score, mut relax, mut converged, initial)) = best else {
         return Err(FitError::BadOption("no initial state to start from".into()));
     };
-    let other_steps = steps_used - relax.steps;
+    if opts.switch_cross_section
+        && let Some(dual) = cross_section_dual(&InitialPose::of(&relax.state))
+    {
+        let mut other = Relaxation::new(&tess, opts, &unit, &dual);
+        let budget = opts.max_steps.saturating_sub(steps_used);
+        let other_converged = other.run(Stage::Global, budget, &mut progress)?;
+        steps_used += other.steps;
+        let other_score = mean_distance(&tess, &other.x, &other.range.points);
+        if other_score < score {
+            (relax, converged) = (other, other_converged);
+        }
+    }
+    // Steps taken by runs other than `relax` (the other hypotheses, an undone refinement).
+    let mut other_steps = steps_used - relax.steps;
+    if opts.refine {
+        let before = relax.clone();
+        let budget = (relax.steps + REFINE_MAX_STEPS).min(opts.max_steps - other_steps);
+        let at_rest = relax.run(Stage::Refine, budget, &mut progress)?;
+        let refined = mean_distance(&tess, &relax.x, &relax.range.points);
+        if !(at_rest && refined <= mean_distance(&tess, &before.x, &before.range.points)) {
+            other_steps += relax.steps - before.steps;
+            relax = before;
+        }
+    }
     if has_joint_stage(opts) {
         converged = relax.run(Stage::Joint, opts.max_steps - other_steps, &mut progress)?;
     }
@@ -784,5 +900,55 @@ pub fn residuals(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) -> Res
         p95: p95 / diagonal,
         max: d[d.len() - 1] / diagonal,
         diagonal,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::superquadric::{SuperquadricParams, inside_outside, shape_at};
+    use bevy::math::DQuat;
+
+    #[test]
+    fn the_cross_section_dual_turns_a_square_into_a_diamond_through_the_same_points() {
+        let pose = |e2| InitialPose {
+            translation: DVec3::new(0.3, -0.2, 0.1),
+            rotation: DQuat::from_rotation_y(0.4),
+            shape: SuperquadricParams {
+                a: 1.0,
+                a1: 1.0,
+                a2: 1.0,
+                a3: 0.6,
+                e1: 0.8,
+                e2,
+            },
+        };
+        assert_eq!(cross_section_dual(&pose(1.3)), None);
+        // A nearly square section's dual is a nearly diamond one through the same points: the
+        // square's surface points lie near the dual's surface, and not near the dual unturned.
+        let square = pose(0.15);
+        let dual = cross_section_dual(&square).unwrap();
+        assert!((dual.shape.e2 - 1.85).abs() < 1e-12);
+        let unturned = InitialPose {
+            rotation: square.rotation,
+            ..dual
+        };
+        let misfit = |other: &InitialPose| {
+            let mut worst: f64 = 0.0;
+            for i in 0..200 {
+                let (u, v) = (-1.2 + 2.4 * (i % 20) as f64 / 19.0, 0.031 * i as f64);
+                let p = square.translation + square.rotation * shape_at(&square.shape, u, v);
+                let local = other.rotation.inverse() * (p - other.translation);
+                let f = inside_outside(&other.shape, local);
+                worst = worst.max((f.powf(other.shape.e1 / 2.0) - 1.0).abs());
+            }
+            worst
+        };
+        assert!(misfit(&dual) < 0.15, "{}", misfit(&dual));
+        assert!(
+            misfit(&unturned) > 2.0 * misfit(&dual),
+            "{}",
+            misfit(&unturned)
+        );
     }
 }

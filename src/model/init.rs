@@ -24,6 +24,17 @@ pub struct InitialPose {
     pub shape: SuperquadricParams,
 }
 
+impl InitialPose {
+    /// The pose and global shape of a model state (its local displacements dropped).
+    pub fn of(state: &super::dynamics::ModelState) -> Self {
+        Self {
+            translation: state.translation,
+            rotation: state.rotation,
+            shape: state.shape,
+        }
+    }
+}
+
 /// The centroid and second central moments of a point set.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Moments {

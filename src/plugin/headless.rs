@@ -1,6 +1,9 @@
 //! Fitting through the plugin in a headless app (`MinimalPlugins`): the command-line fitter's
 //! `--app` mode. It runs the same fit as [`crate::model::fit::fit`], step for step, with every
-//! initial hypothesis as its own entity, simulated in parallel; the result is the same.
+//! initial hypothesis as its own entity, simulated in parallel; the result is the same. The
+//! refining stage and the cross-section switch ([`FitOptions::refine`],
+//! [`FitOptions::switch_cross_section`]) choose between runs after the fact and run in the core
+//! fitter only; asking for them here is an error.
 
 use super::{
     DeformableSqPlugin, FemMesh, FitDriver, GlobalShape, LocalDofs, ModelSettings, RangeData,
@@ -56,6 +59,13 @@ fn run_until_done(app: &mut App, max_updates: u64) -> Result<(), FitError> {
 pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, FitError> {
     validate_points(points)?;
     validate_options(opts)?;
+    if opts.refine || opts.switch_cross_section {
+        return Err(FitError::BadOption(
+            "the refining stage and the cross-section switch run in model::fit::fit only, not \
+             through the plugin (drop --app, or --refine/--switch/--robust)"
+                .into(),
+        ));
+    }
     let norm = Normalization::of(points);
     let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
     let candidates = initial_hypotheses(points, opts);
