@@ -412,3 +412,44 @@ fn points_with_parts_fit_several_parts_and_give_every_point_to_one() {
         assert!(l["mean"].as_f64().unwrap() < 0.05, "{l}");
     }
 }
+
+#[test]
+fn the_ground_truth_example_scores_ours_and_ems_with_finite_errors() {
+    let out = Command::new(example_binary("ground_truth"))
+        .args(["--clouds", "2"])
+        .output()
+        .expect("run ground_truth");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    let rows: Vec<&str> = text.lines().filter(|l| l.starts_with("| ")).collect();
+    // Header, two clouds, the medians.
+    assert_eq!(rows.len(), 4, "{text}");
+    for row in &rows[1..] {
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        for cell in &cells[3..6] {
+            let v: Vec<f64> = cell
+                .split('/')
+                .map(|x| x.trim().trim_end_matches('°').parse().unwrap())
+                .collect();
+            assert!(
+                v.len() == 4 && v.iter().all(|x| x.is_finite() && *x >= 0.0),
+                "{row}"
+            );
+        }
+    }
+}
+
+#[test]
+fn robust_flags_are_refused_through_the_app() {
+    let cloud = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/assets/data/ems/partial_pointCloud_example_1.ply"
+    );
+    let out = Command::new(example_binary("fit"))
+        .args([cloud, "--robust", "--app", "--quiet"])
+        .output()
+        .expect("run fit");
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("not through the plugin"), "{err}");
+}

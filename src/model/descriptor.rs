@@ -86,11 +86,32 @@ impl ShapeDescriptor {
     /// The distance between two parts: the smallest [`Self::raw_distance`] over the
     /// [`Self::relabellings`] of `other`. Symmetric, zero for two descriptions of one surface.
     pub fn distance(&self, other: &Self) -> f64 {
+        self.best_relabelling(other).1
+    }
+}
+
+/// For each of [`ShapeDescriptor::relabellings`], which of the original axes becomes each axis of
+/// the relabelled description (relabelling k's axis j is the original's axis `RELABELLINGS[k][j]`).
+pub const RELABELLINGS: [[usize; 3]; 6] = [
+    [0, 1, 2],
+    [1, 0, 2],
+    [1, 2, 0],
+    [2, 1, 0],
+    [2, 0, 1],
+    [0, 2, 1],
+];
+
+impl ShapeDescriptor {
+    /// The relabelling of `other` nearest `self` (an index into [`Self::relabellings`] and
+    /// [`RELABELLINGS`]) and its distance.
+    pub fn best_relabelling(&self, other: &Self) -> (usize, f64) {
         other
             .relabellings()
             .iter()
             .map(|o| self.raw_distance(o))
-            .fold(f64::INFINITY, f64::min)
+            .enumerate()
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap_or((0, f64::INFINITY))
     }
 }
 
@@ -152,14 +173,7 @@ mod tests {
 
     /// The axis order of relabelling `k` of [`ShapeDescriptor::relabellings`].
     fn relabel_order(k: usize) -> [usize; 3] {
-        [
-            [0, 1, 2],
-            [1, 0, 2],
-            [1, 2, 0],
-            [2, 1, 0],
-            [2, 0, 1],
-            [0, 2, 1],
-        ][k]
+        RELABELLINGS[k]
     }
 
     #[test]
