@@ -290,9 +290,8 @@ pub fn ground_truth_cloud(seed: u64, recipe: &CloudRecipe) -> GroundTruthCloud {
         |(lo, hi), p| (lo.min(*p), hi.max(*p)),
     );
     let grow = 0.2 * (hi - lo);
-    let outliers = ((recipe.outliers.clamp(0.0, 0.9) / (1.0 - recipe.outliers.clamp(0.0, 0.9)))
-        * recipe.surface_points as f64)
-        .round() as usize;
+    let ratio = recipe.outliers.clamp(0.0, 0.9);
+    let outliers = (ratio / (1.0 - ratio) * recipe.surface_points as f64).round() as usize;
     for _ in 0..outliers {
         let t = DVec3::new(rng.uniform(), rng.uniform(), rng.uniform());
         points.push(lo - grow + t * (hi - lo + 2.0 * grow));
@@ -364,7 +363,8 @@ impl ParameterErrors {
         Self {
             axes,
             epsilon,
-            translation: truth.translation.distance(fit.translation) / truth.shape.a,
+            translation: truth.translation.distance(fit.translation)
+                / truth.shape.semi_axes().abs().max_element(),
             rotation_deg,
         }
     }

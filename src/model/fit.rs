@@ -202,7 +202,8 @@ pub enum Stage {
     /// Global DOFs only, after the hypothesis is chosen, with each point's point of influence
     /// migrating to its closest point on the surface (the paper's Fig. 3) and point-to-plane
     /// springs: the superquadric fitted to the points themselves instead of to the nodes they
-    /// chose (beyond the paper's experiments; [`FitOptions::refine`]).
+    /// chose (beyond the paper's experiments; [`FitOptions::refine`]). Run by [`fit`] only: it is
+    /// undone there when it does not pay, which the plugin's stage driver cannot do.
     Refine,
     /// Global and local DOFs together.
     Joint,
@@ -258,7 +259,8 @@ pub struct FitReport {
     pub substepped_steps: u32,
     /// Point-to-surface residuals of the fitted model.
     pub residuals: Residuals,
-    /// Initial pose the loop started from (data frame).
+    /// Initial pose the loop started from (data frame): the chosen hypothesis, or its
+    /// cross-section dual when that fitted closer.
     pub initial: InitialPose,
 }
 
@@ -711,7 +713,9 @@ pub(crate) fn run_parallel<I: Sync, R: Send>(
 /// Stages: coverage (placing, global DOFs), global (the paper's springs, global DOFs), joint
 /// (global and local DOFs), each run to rest; see the module docs. With moments initialisation
 /// the first two stages run from each of the three axis hypotheses of the moments frame and the
-/// one whose surface lies closest to the data goes on.
+/// one whose surface lies closest to the data goes on. Between choosing and the joint stage, the
+/// options may add the cross-section switch ([`FitOptions::switch_cross_section`]) and the
+/// refining stage ([`FitOptions::refine`]).
 pub fn fit(
     points: &[DVec3],
     opts: &FitOptions,
@@ -745,7 +749,7 @@ pub fn fit(
             best = Some((score, relax, converged, *initial));
         }
     }
-    let Some((score, mut relax, mut converged, initial)) = best else {
+    let Some((mut score, mut relax, mut converged, mut initial)) = best else {
         return Err(FitError::BadOption("no initial state to start from".into()));
     };
     if opts.switch_cross_section
@@ -757,7 +761,9 @@ pub fn fit(
         steps_used += other.steps;
         let other_score = mean_distance(&tess, &other.x, &other.range.points);
         if other_score < score {
-            (relax, converged) = (other, other_converged);
+            (score, relax, converged) = (other_score, other, other_converged);
+            let start = ModelState::new(&tess, dual.translation, dual.rotation, dual.shape);
+            initial = InitialPose::of(&norm.state_to_data(&start));
         }
     }
     // Steps taken by runs other than `relax` (the other hypotheses, an undone refinement).
@@ -767,7 +773,7 @@ pub fn fit(
         let budget = (relax.steps + REFINE_MAX_STEPS).min(opts.max_steps - other_steps);
         let at_rest = relax.run(Stage::Refine, budget, &mut progress)?;
         let refined = mean_distance(&tess, &relax.x, &relax.range.points);
-        if !(at_rest && refined <= mean_distance(&tess, &before.x, &before.range.points)) {
+        if !(at_rest && refined <= score) {
             other_steps += relax.steps - before.steps;
             relax = before;
         }

@@ -61,8 +61,8 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     validate_options(opts)?;
     if opts.refine || opts.switch_cross_section {
         return Err(FitError::BadOption(
-            "the refining stage and the cross-section switch run in model::fit::fit only, not \
-             through the plugin (drop --app, or --refine/--switch/--robust)"
+            "FitOptions::refine and switch_cross_section run in model::fit::fit only, not \
+             through the plugin"
                 .into(),
         ));
     }
