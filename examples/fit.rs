@@ -34,7 +34,9 @@ use bevy_deformable_sq::io::{
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::FitReport;
-use bevy_deformable_sq::model::fit::{FitOptions, Stage, fit};
+use bevy_deformable_sq::model::fit::{
+    FitOptions, Residuals, Stage, bounding_diagonal, fit, point_distances,
+};
 use bevy_deformable_sq::model::forces::image::{DEFAULT_SIGMA, ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::forces::range::InfluenceMode;
 use bevy_deformable_sq::model::image_fit::ImagePartFit;
@@ -44,7 +46,7 @@ use bevy_deformable_sq::model::image_fit::{
 };
 use bevy_deformable_sq::model::parts::fit_parts;
 use bevy_deformable_sq::plugin::headless::fit_headless;
-use bevy_deformable_sq::scene::{PartRun, SceneDef, run_scene};
+use bevy_deformable_sq::scene::{PartRun, SceneData, SceneDef, Split, run_scene};
 use bevy_deformable_sq::synthetic;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -343,7 +345,7 @@ fn run_parts(points: &[DVec3], name: &str, args: &Args) -> Result<(), String> {
     let start = Instant::now();
     let report = fit_parts(points, k, 8, &args.options).map_err(|e| format!("{name}: {e}"))?;
     let wall = start.elapsed();
-    for (j, part) in report.parts.iter().enumerate() {
+    for (j, part) in report.fits.iter().enumerate() {
         let n = report.owner.iter().filter(|&&o| o == j).count();
         let mut line = range_summary(name, part, n, wall, "core", args.options.global_only);
         line["part"] = serde_json::json!(j);
@@ -529,7 +531,7 @@ fn run_scene_file(path: &Path, args: &Args) -> Result<(), String> {
         let tess = Tessellation::new(part.k);
         let mut line = match run {
             PartRun::Range(report) => {
-                let n = data.range_points(part).map_or(0, |p| p.len());
+                let n = data.range_points(&def, i).map_or(0, |p| p.len());
                 range_summary(&file, report, n, wall, "core", part.free.global_only)
             }
             PartRun::Image(f) => image_part_line(&file, i + 1, f, tess.node_count()),
@@ -544,6 +546,10 @@ fn run_scene_file(path: &Path, args: &Args) -> Result<(), String> {
         let base = vertices.len() as u32;
         vertices.extend_from_slice(&x);
         triangles.extend(tess.triangles().iter().map(|t| t.map(|i| i + base)));
+    }
+    for line in split_summaries(&def, &data, &runs, &file) {
+        println!("{line}");
+        lines.push(line);
     }
     if let Some(out) = &args.out_mesh {
         let note = format!("{} parts of scene {file}", def.parts.len());
@@ -564,6 +570,43 @@ fn run_scene_file(path: &Path, args: &Args) -> Result<(), String> {
         def.save(out).map_err(|e| e.to_string())?;
     }
     Ok(())
+}
+
+/// One JSON line per source its parts share: how the split went and the distance of every point
+/// to the surface of the part it pulls on, over the whole cloud's bounding-box diagonal.
+fn split_summaries(
+    def: &SceneDef,
+    data: &SceneData,
+    runs: &[Result<PartRun, String>],
+    file: &str,
+) -> Vec<serde_json::Value> {
+    let mut sources: Vec<(&String, &Split)> = data.splits.iter().collect();
+    sources.sort_by_key(|(name, _)| *name);
+    sources
+        .into_iter()
+        .map(|(name, split)| {
+            let mut parts: Vec<usize> = split.owner.to_vec();
+            parts.sort_unstable();
+            parts.dedup();
+            let mut d = Vec::new();
+            for &i in &parts {
+                let (Some(Ok(run)), Some(pts)) = (runs.get(i), data.range_points(def, i)) else {
+                    continue;
+                };
+                let tess = Tessellation::new(def.parts[i].k);
+                let mut x = Vec::new();
+                run.state().node_positions(&tess, &mut x);
+                d.extend(point_distances(&tess, &x, &pts));
+            }
+            let all = data.points.get(name).map_or(&[][..], |p| p.as_slice());
+            let r = Residuals::of(d, bounding_diagonal(all));
+            serde_json::json!({
+                "file": file, "data": name, "parts": parts.len(), "points": all.len(),
+                "rounds": split.rounds, "stable": split.stable, "moved": split.moved,
+                "mean": r.mean, "p95": r.p95, "max": r.max,
+            })
+        })
+        .collect()
 }
 
 fn main() -> ExitCode {

@@ -40,7 +40,8 @@ use crate::model::forces::image::{
 };
 use crate::model::forces::range::{DEFAULT_COVERAGE, InfluenceMode};
 use crate::model::image_fit::{ImageFitOptions, ImagePartFit, PartAxes, fit_part};
-use crate::model::init::InitialPose;
+use crate::model::init::{InitialPose, initial_pose};
+use crate::model::parts::{PARTITION_ROUNDS, partition};
 use crate::model::superquadric::{MAX_EPSILON, MIN_EPSILON, SuperquadricParams};
 use bevy::math::{DQuat, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
@@ -257,6 +258,10 @@ pub enum PartPlacement {
         /// Both ends of the minor axis, in pixels.
         minor: [[f64; 2]; 2],
     },
+    /// The automatic initialisation: an ellipsoid boxing the part's range points in their
+    /// principal frame ([`crate::model::init::initial_pose`]); with a `shared` source, the points
+    /// the part gets when the source is split among its parts. Needs [`Forces::Range`].
+    Auto,
 }
 
 /// Damping densities γ_g (global) and γ_d (local).
@@ -325,6 +330,13 @@ pub enum Forces {
         /// multi-part object).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         crop: Option<Aabb>,
+        /// Share the source's points with the other parts on it that set `shared`: each point
+        /// pulls only on the part whose surface is nearest (the paper's doll experiment, in 3D).
+        /// The split is made when the scene loads ([`SceneData::resolve`]) by alternating
+        /// global-only fits of the parts and reassignment ([`crate::model::parts::partition`]);
+        /// the parts sharing a source must all be placed `Auto` or all be placed explicitly.
+        #[serde(default)]
+        shared: bool,
     },
     /// An image potential pulling on the part's projected outline (eq. 23).
     Image {
@@ -570,6 +582,19 @@ impl SceneDef {
         for (i, part) in self.parts.iter().enumerate() {
             part.validate(file, &format!("parts[{i}]"), &self.data)?;
         }
+        for (source, group) in self.shared_groups() {
+            let auto = |&i: &usize| matches!(self.parts[i].placement, PartPlacement::Auto);
+            if group.iter().any(auto) && !group.iter().all(auto) {
+                let odd = group.iter().find(|i| !auto(i)).copied().unwrap_or(group[0]);
+                return Err(SceneError::at_field(
+                    file,
+                    format!("parts[{odd}].placement"),
+                    format!(
+                        "the parts sharing {source:?} ({group:?}) must all be placed Auto or all explicitly"
+                    ),
+                ));
+            }
+        }
         if let Some(c) = &self.camera {
             check_finite(file, "camera.eye", &c.eye)?;
             check_finite(file, "camera.target", &c.target)?;
@@ -588,6 +613,20 @@ impl SceneDef {
             }
         }
         Ok(())
+    }
+
+    /// The parts that share each source (`Range(shared: true)`), by source name, in part order.
+    pub fn shared_groups(&self) -> BTreeMap<&str, Vec<usize>> {
+        let mut groups: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
+        for (i, part) in self.parts.iter().enumerate() {
+            if let Forces::Range {
+                data, shared: true, ..
+            } = &part.forces
+            {
+                groups.entry(data.as_str()).or_default().push(i);
+            }
+        }
+        groups
     }
 
     /// The scene as RON text, every field written (what [`SceneDef::parse`] reads back to the same
@@ -773,6 +812,15 @@ impl PartDef {
                     ));
                 }
             }
+            PartPlacement::Auto => {
+                if !matches!(self.forces, Forces::Range { .. }) {
+                    return Err(SceneError::at_field(
+                        file,
+                        f("placement"),
+                        "Auto places a part on its range points: the part needs `forces: Range(..)`",
+                    ));
+                }
+            }
         }
         if !(MIN_K..=MAX_K).contains(&self.k) {
             return Err(SceneError::at_field(
@@ -814,7 +862,15 @@ impl PartDef {
                 influence,
                 crop,
                 outliers,
+                shared,
             } => {
+                if *shared && crop.is_some() {
+                    return Err(SceneError::at_field(
+                        file,
+                        f("forces.crop"),
+                        "a shared source is split among its parts by nearness; drop the crop or `shared`",
+                    ));
+                }
                 if !(0.0..1.0).contains(outliers) {
                     return Err(SceneError::at_field(
                         file,
@@ -937,6 +993,11 @@ impl PartDef {
 
     /// The options of a range fit of this part from `start` (in world space).
     pub fn fit_options(&self, start: &ModelState) -> FitOptions {
+        self.fit_options_from(Initialization::Explicit(InitialPose::of(start)))
+    }
+
+    /// The options of a range fit of this part, started as `init` says.
+    fn fit_options_from(&self, init: Initialization) -> FitOptions {
         let defaults = FitOptions::default();
         let (beta, coverage, influence, outlier_ratio) = match &self.forces {
             Forces::Range {
@@ -965,11 +1026,7 @@ impl PartDef {
             tolerance: self.fit.tolerance.unwrap_or(defaults.tolerance),
             global_first: self.fit.global_first,
             global_only: self.free.global_only,
-            init: Initialization::Explicit(InitialPose {
-                translation: start.translation,
-                rotation: start.rotation,
-                shape: start.shape,
-            }),
+            init,
             ..defaults
         }
     }
@@ -1023,6 +1080,21 @@ pub struct SceneData {
     pub points: HashMap<String, Arc<Vec<DVec3>>>,
     /// The potential of every image source.
     pub images: HashMap<String, Arc<ImagePotential>>,
+    /// How each source shared by two or more parts was split among them, by source name.
+    pub splits: HashMap<String, Split>,
+}
+
+/// How a shared source's points were split among its parts ([`crate::model::parts::partition`]).
+#[derive(Clone, Debug)]
+pub struct Split {
+    /// The scene index of the part each of the source's points pulls on.
+    pub owner: Arc<Vec<usize>>,
+    /// Rounds of fit-then-reassign taken.
+    pub rounds: u32,
+    /// True when the last round moved no point.
+    pub stable: bool,
+    /// How many points the last round moved to another part.
+    pub moved: usize,
 }
 
 impl SceneData {
@@ -1072,9 +1144,18 @@ impl SceneData {
                 }
             }
         }
+        for (source, group) in def.shared_groups() {
+            if group.len() < 2 {
+                continue;
+            }
+            let split = out.split(def, source, &group).map_err(|m| {
+                SceneError::at_field(file, format!("parts[{}].forces", group[0]), m)
+            })?;
+            out.splits.insert(source.to_string(), split);
+        }
         for (i, part) in def.parts.iter().enumerate() {
             if let Forces::Range { .. } = part.forces {
-                let n = out.range_points(part).map_or(0, |p| p.len());
+                let n = out.range_points(def, i).map_or(0, |p| p.len());
                 if n < crate::model::fit::MIN_POINTS {
                     return Err(SceneError::at_field(
                         file,
@@ -1090,16 +1171,55 @@ impl SceneData {
         Ok(out)
     }
 
-    /// The world points that pull on `part` (its source's points inside its crop box), if it has
-    /// range forces.
-    pub fn range_points(&self, part: &PartDef) -> Option<Vec<DVec3>> {
-        let Forces::Range { data, crop, .. } = &part.forces else {
+    /// Splits the points of `source` among the parts `group` (scene indices) that share it.
+    fn split(&self, def: &SceneDef, source: &str, group: &[usize]) -> Result<Split, String> {
+        let points = self
+            .points
+            .get(source)
+            .ok_or_else(|| format!("the data {source:?} are not loaded"))?;
+        let opts: Vec<FitOptions> = group
+            .iter()
+            .map(|&i| {
+                let part = &def.parts[i];
+                let placed = match part.placement {
+                    PartPlacement::Auto => None,
+                    _ => self.initial_state(def, i),
+                };
+                let init = placed.map_or(Initialization::Moments, |s| {
+                    Initialization::Explicit(InitialPose::of(&s))
+                });
+                part.fit_options_from(init)
+            })
+            .collect();
+        let p = partition(points, &opts, PARTITION_ROUNDS)
+            .map_err(|e| format!("splitting {source:?} among parts {group:?}: {e}"))?;
+        Ok(Split {
+            owner: Arc::new(p.owner.iter().map(|&j| group[j]).collect()),
+            rounds: p.rounds,
+            stable: p.stable,
+            moved: p.moved,
+        })
+    }
+
+    /// The world points that pull on part `index`, if it has range forces: its source's points
+    /// inside its crop box, or, from a shared source, the points the split gave it.
+    pub fn range_points(&self, def: &SceneDef, index: usize) -> Option<Vec<DVec3>> {
+        let Forces::Range {
+            data, crop, shared, ..
+        } = &def.parts.get(index)?.forces
+        else {
             return None;
         };
         let pts = self.points.get(data)?;
-        Some(match crop {
-            Some(b) => pts.iter().copied().filter(|p| b.contains(*p)).collect(),
-            None => pts.to_vec(),
+        Some(match (crop, self.splits.get(data)) {
+            (_, Some(split)) if *shared => pts
+                .iter()
+                .zip(split.owner.iter())
+                .filter(|(_, o)| **o == index)
+                .map(|(p, _)| *p)
+                .collect(),
+            (Some(b), _) => pts.iter().copied().filter(|p| b.contains(*p)).collect(),
+            _ => pts.to_vec(),
         })
     }
 
@@ -1139,6 +1259,15 @@ impl SceneData {
                     translation,
                     rotation,
                     shape,
+                    displacement: vec![DVec3::ZERO; tess_nodes],
+                }
+            }
+            PartPlacement::Auto => {
+                let pose = initial_pose(&self.range_points(def, index)?);
+                ModelState {
+                    translation: pose.translation,
+                    rotation: pose.rotation,
+                    shape: pose.shape,
                     displacement: vec![DVec3::ZERO; tess_nodes],
                 }
             }
@@ -1192,7 +1321,7 @@ pub fn run_part(
         Forces::Free => Ok(PartRun::Free(state)),
         Forces::Range { .. } => {
             let points = data
-                .range_points(part)
+                .range_points(def, index)
                 .ok_or_else(|| format!("parts[{index}]: its data are not loaded"))?;
             let mut opts = part.fit_options(&state);
             if let Some(m) = max_steps {

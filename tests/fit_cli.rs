@@ -38,6 +38,19 @@ fn run(args: &[&str]) -> Output {
         .expect("run fit")
 }
 
+/// The JSON lines a successful run printed (fails the test, with stderr, when the run failed).
+fn json_lines(out: &Output) -> Vec<serde_json::Value> {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect()
+}
+
 fn assert_bad_input(args: &[&str], file_hint: &str, what: &str) {
     let out = run(args);
     let err = String::from_utf8_lossy(&out.stderr);
@@ -229,18 +242,9 @@ fn fits_parts_to_an_image_and_writes_the_overlay() {
         "--out-mesh",
         mesh.to_str().unwrap(),
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let lines: Vec<serde_json::Value> = stdout
-        .lines()
-        .map(|l| serde_json::from_str(l).expect("JSON line"))
-        .collect();
+    let lines = json_lines(&out);
     // One automatically placed part (the horse is one blob), then the image summary.
-    assert_eq!(lines.len(), 2, "{stdout}");
+    assert_eq!(lines.len(), 2, "{lines:?}");
     assert_eq!(lines[0]["part"], 1);
     let summary = &lines[1];
     assert!(
@@ -297,12 +301,7 @@ fn the_scene_runner_fits_every_part_and_writes_mesh_params_and_scene() {
         "--out-scene",
         &saved.display().to_string(),
     ]);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{stderr}");
-    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let lines = json_lines(&out);
     let names: Vec<&str> = lines.iter().map(|l| l["name"].as_str().unwrap()).collect();
     assert_eq!(
         names,
@@ -387,17 +386,35 @@ fn the_ems_comparison_example_prints_a_row_per_cloud() {
 }
 
 #[test]
+fn a_shared_scan_scene_prints_its_parts_and_the_split() {
+    let scene = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/assets/scenes/cow_scan.dsq.ron"
+    );
+    let lines = json_lines(&run(&["--scene", scene, "--quiet"]));
+    assert_eq!(lines.len(), 7, "six parts and the split: {lines:?}");
+    let split = &lines[6];
+    assert_eq!(split["data"], "cow");
+    assert_eq!(split["parts"].as_u64(), Some(6));
+    let owned: u64 = lines[..6]
+        .iter()
+        .map(|l| l["points"].as_u64().unwrap())
+        .sum();
+    assert_eq!(
+        Some(owned),
+        split["points"].as_u64(),
+        "every point in one part"
+    );
+    let mean = split["mean"].as_f64().unwrap();
+    assert!(mean > 0.0 && mean < 0.005, "{split}");
+}
+
+#[test]
 fn points_with_parts_fit_several_parts_and_give_every_point_to_one() {
     // The cow mesh's vertices in 3 parts: a line per part, then one for the whole.
     let cow = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/data/cow.obj");
-    let out = run(&[cow, "--parts", "3"]);
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}");
-    let lines: Vec<serde_json::Value> = text
-        .lines()
-        .map(|l| serde_json::from_str(l).expect("JSON line"))
-        .collect();
-    assert_eq!(lines.len(), 4, "{text}");
+    let lines = json_lines(&run(&[cow, "--parts", "3"]));
+    assert_eq!(lines.len(), 4, "{lines:?}");
     let owned: u64 = lines[..3]
         .iter()
         .map(|l| l["points"].as_u64().unwrap())

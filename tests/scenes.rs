@@ -8,7 +8,9 @@ use bevy::math::{DQuat, DVec2, DVec3};
 use bevy::prelude::*;
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
-use bevy_deformable_sq::model::fit::residuals;
+use bevy_deformable_sq::model::fit::{
+    FitOptions, MIN_POINTS, Residuals, bounding_diagonal, fit, point_distances, residuals,
+};
 use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment, pestle_experiment};
 use bevy_deformable_sq::plugin::FitDriver;
 use bevy_deformable_sq::plugin::scene::{SceneImage, save_scene};
@@ -17,7 +19,7 @@ use bevy_deformable_sq::scene::{PartRun, SceneDef, SceneError, run_scene};
 use bevy_deformable_sq::synthetic;
 use std::path::{Path, PathBuf};
 
-const SHIPPED: [(&str, usize); 7] = [
+const SHIPPED: [(&str, usize); 9] = [
     ("egg", 1),
     ("mug", 1),
     ("pestle", 1),
@@ -25,6 +27,8 @@ const SHIPPED: [(&str, usize); 7] = [
     ("bunny", 1),
     ("hippo1", 1),
     ("cow", 6),
+    ("ant_scan", 9),
+    ("cow_scan", 6),
 ];
 
 fn shipped(name: &str) -> PathBuf {
@@ -60,7 +64,7 @@ fn every_shipped_scene_loads_and_runs_headless() {
             assert!(run.state().is_finite(), "{name} part {i}");
             match run {
                 PartRun::Range(report) => {
-                    let pts = data.range_points(part).unwrap();
+                    let pts = data.range_points(&def, i).unwrap();
                     let (tess, x0) = node_positions(part.k, &start);
                     let before = residuals(&tess, &x0, &pts).rms;
                     assert!(
@@ -91,7 +95,7 @@ fn egg_and_mug_scenes_run_the_papers_experiments_to_rest() {
         let (def, data) = SceneDef::load_file(&shipped(name)).unwrap();
         let part = &def.parts[0];
         let start = data.initial_state(&def, 0).unwrap();
-        assert_eq!(data.range_points(part).unwrap(), points, "{name}");
+        assert_eq!(data.range_points(&def, 0).unwrap(), points, "{name}");
         // The same options bit for bit, hence the same fit as `fit --paper egg|mug`.
         assert_eq!(part.fit_options(&start), options, "{name}");
         let run = run_scene(&def, &data, None).remove(0).unwrap();
@@ -384,6 +388,95 @@ fn a_crop_that_leaves_too_few_points_is_refused() {
     std::fs::write(&file, scene_text(&part, PTS)).unwrap();
     let e = load_err(&file);
     assert_names(&e, Some("parts[0].forces"), None, "0 data points");
+}
+
+#[test]
+fn a_shared_scan_is_split_so_every_point_pulls_on_one_part_and_the_parts_fit_closer_than_one() {
+    let (def, data) = SceneDef::load_file(&shipped("cow_scan")).unwrap_or_else(|e| panic!("{e}"));
+    let cloud = data.points["cow"].clone();
+    let split = &data.splits["cow"];
+    assert_eq!(split.owner.len(), cloud.len());
+    // Every point belongs to exactly one part: the parts' points are disjoint and cover the scan.
+    let mut seen = 0;
+    for i in 0..def.parts.len() {
+        let mine = data.range_points(&def, i).unwrap();
+        assert!(mine.len() >= MIN_POINTS, "part {i}: {} points", mine.len());
+        assert_eq!(
+            mine.len(),
+            split.owner.iter().filter(|&&o| o == i).count(),
+            "part {i}"
+        );
+        seen += mine.len();
+    }
+    assert_eq!(seen, cloud.len());
+    // Auto placement: each part starts boxing its own points.
+    let start = data.initial_state(&def, 2).unwrap();
+    let mine = data.range_points(&def, 2).unwrap();
+    let centroid = mine.iter().copied().sum::<DVec3>() / mine.len() as f64;
+    assert!(
+        start.translation.distance(centroid) < start.shape.a,
+        "{start:?}"
+    );
+    // The parts, each on its points, lie closer to the scan than one part fitted to all of it.
+    let runs = run_scene(&def, &data, None);
+    let mut d = Vec::new();
+    for (i, run) in runs.iter().enumerate() {
+        let run = run.as_ref().unwrap_or_else(|e| panic!("{e}"));
+        let (tess, x) = node_positions(def.parts[i].k, run.state());
+        d.extend(point_distances(
+            &tess,
+            &x,
+            &data.range_points(&def, i).unwrap(),
+        ));
+    }
+    let parts = Residuals::of(d, bounding_diagonal(&cloud)).mean;
+    let one = fit(
+        &cloud,
+        &FitOptions {
+            k: 21,
+            ..FitOptions::default()
+        },
+        |_| {},
+    )
+    .unwrap()
+    .residuals
+    .mean;
+    assert!(
+        parts < 0.5 * one,
+        "six parts {parts:.5} vs one part {one:.5}"
+    );
+}
+
+#[test]
+fn shared_sources_refuse_crops_and_mixed_placements_and_auto_needs_range_forces() {
+    let shared = GOOD_PART.replace(
+        r#"Range(data: "pts")"#,
+        r#"Range(data: "pts", shared: true)"#,
+    );
+    let cropped = shared.replace(
+        "shared: true",
+        "shared: true, crop: (min: (0.0, 0.0, 0.0), max: (1.0, 1.0, 1.0))",
+    );
+    let e = parse_err(&scene_text(&cropped, PTS));
+    assert_names(&e, Some("parts[0].forces.crop"), None, "shared");
+    let auto = shared.replace(
+        &shared[shared.find("placement:").unwrap()..shared.find("k: 5").unwrap()],
+        "placement: Auto,\n        ",
+    );
+    let e = parse_err(&scene_text(&format!("{auto},\n    {shared}"), PTS));
+    assert_names(&e, Some("parts[1].placement"), None, "all be placed auto");
+    let free = auto.replace(r#"forces: Range(data: "pts", shared: true),"#, "");
+    let e = parse_err(&scene_text(&free, PTS));
+    assert_names(&e, Some("parts[0].placement"), None, "range");
+    // Two Auto parts on the egg: loads, and splits the egg between them.
+    let dir = scratch("shared");
+    let file = dir.join("two.dsq.ron");
+    std::fs::write(&file, scene_text(&format!("{auto},\n    {auto}"), PTS)).unwrap();
+    let (def, data) = SceneDef::load_file(&file).unwrap_or_else(|e| panic!("{e}"));
+    let n: Vec<usize> = (0..2)
+        .map(|i| data.range_points(&def, i).unwrap().len())
+        .collect();
+    assert_eq!(n[0] + n[1], data.points["pts"].len(), "{n:?}");
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -689,7 +782,7 @@ fn the_readme_example_scene_parses_and_loads() {
     .unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(def.parts.len(), 2);
     assert_eq!(
-        data.range_points(&def.parts[0]).unwrap().len(),
+        data.range_points(&def, 0).unwrap().len(),
         3029,
         "the crop keeps the whole bunny"
     );

@@ -884,28 +884,45 @@ pub fn point_distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) 
 
 /// Point-to-surface residual statistics relative to the points' bounding-box diagonal.
 pub fn residuals(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) -> Residuals {
+    Residuals::of(
+        point_distances(tess, node_x, points),
+        bounding_diagonal(points),
+    )
+}
+
+/// The length of the diagonal of the points' axis-aligned bounding box (0 for no points).
+pub fn bounding_diagonal(points: &[DVec3]) -> f64 {
+    if points.is_empty() {
+        return 0.0;
+    }
     let (lo, hi) = points
         .iter()
         .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), p| {
             (lo.min(*p), hi.max(*p))
         });
-    let diagonal = (hi - lo).length();
-    let mut d = point_distances(tess, node_x, points);
-    if d.is_empty() || !(diagonal > 0.0) {
-        return Residuals {
+    (hi - lo).length()
+}
+
+impl Residuals {
+    /// The statistics of point-to-surface distances `d` (data units) relative to `diagonal`;
+    /// all zero when there are no distances or the diagonal is not positive.
+    pub fn of(mut d: Vec<f64>, diagonal: f64) -> Self {
+        if d.is_empty() || !(diagonal > 0.0) {
+            return Residuals {
+                diagonal,
+                ..Default::default()
+            };
+        }
+        d.sort_by(f64::total_cmp);
+        let m = d.len() as f64;
+        let p95 = d[((0.95 * (m - 1.0)).round() as usize).min(d.len() - 1)];
+        Residuals {
+            mean: d.iter().sum::<f64>() / m / diagonal,
+            rms: (d.iter().map(|x| x * x).sum::<f64>() / m).sqrt() / diagonal,
+            p95: p95 / diagonal,
+            max: d[d.len() - 1] / diagonal,
             diagonal,
-            ..Default::default()
-        };
-    }
-    d.sort_by(f64::total_cmp);
-    let m = d.len() as f64;
-    let p95 = d[((0.95 * (m - 1.0)).round() as usize).min(d.len() - 1)];
-    Residuals {
-        mean: d.iter().sum::<f64>() / m / diagonal,
-        rms: (d.iter().map(|x| x * x).sum::<f64>() / m).sqrt() / diagonal,
-        p95: p95 / diagonal,
-        max: d[d.len() - 1] / diagonal,
-        diagonal,
+        }
     }
 }
 

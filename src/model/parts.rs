@@ -9,24 +9,13 @@
 //! seeding, deterministic), and the first fit of each part starts from the moments of its
 //! cluster; later rounds start each part from its last fit.
 
+use super::dynamics::ModelState;
+use super::fem::Tessellation;
 use super::fit::{
     FitError, FitOptions, FitReport, Initialization, MIN_POINTS, fit, point_distances, run_parallel,
 };
 use super::init::InitialPose;
 use bevy::math::DVec3;
-
-/// What [`fit_parts`] returns.
-#[derive(Clone, Debug)]
-pub struct PartsReport {
-    /// The fit of each part, in data units.
-    pub parts: Vec<FitReport>,
-    /// The part each data point belongs to (index into `parts`).
-    pub owner: Vec<usize>,
-    /// Rounds of fit-then-reassign taken.
-    pub rounds: u32,
-    /// True when the last round moved no point to another part.
-    pub stable: bool,
-}
 
 /// k-means clusters of `points`: the cluster of each point. Seeds: the point farthest from the
 /// centroid, then repeatedly the point farthest from every seed so far; then `iterations` Lloyd
@@ -84,16 +73,45 @@ pub fn kmeans(points: &[DVec3], k: usize, iterations: u32) -> Vec<usize> {
     label
 }
 
-/// Fits `k` parts to `points` (see the module docs), at most `rounds` rounds. Each part is fitted
-/// with `opts` (its `init` is replaced: moments of the cluster first, then the last fit).
-/// Errors: fewer than [`MIN_POINTS`] points per part, or a part's fit failing (named).
-pub fn fit_parts(
+/// Rounds of fit-then-reassign that [`fit_parts`]'s callers use by default (the fit example's
+/// `--parts`, scenes' shared sources): on the scans in `assets/` the partition has settled, or
+/// moves a handful of points back and forth, by then.
+pub const PARTITION_ROUNDS: u32 = 8;
+
+/// What [`partition`] and [`fit_parts`] return.
+#[derive(Clone, Debug)]
+pub struct Partition {
+    /// The fit of each part, in data units: from [`partition`], the last global-only fit; from
+    /// [`fit_parts`], the final fit (with local DOFs when the options have them).
+    pub fits: Vec<FitReport>,
+    /// The part each data point belongs to (index into `fits`).
+    pub owner: Vec<usize>,
+    /// Rounds of fit-then-reassign taken.
+    pub rounds: u32,
+    /// True when the last round moved no point to another part.
+    pub stable: bool,
+    /// How many points the last round moved to another part.
+    pub moved: usize,
+}
+
+/// Splits `points` among parts, one per entry of `opts` (each part's own tessellation, stiffness
+/// and forces): at most `rounds` rounds of global-only fits, each followed by giving every point
+/// to the part whose fitted surface is nearest (see the module docs).
+///
+/// The first split: when every part starts from [`Initialization::Moments`], k-means on the
+/// points, and each part's first fit starts from its cluster's moments; when every part starts
+/// from an [`Initialization::Explicit`] pose, each point goes to the part whose initial surface
+/// is nearest. Later rounds start each part from its last fit.
+///
+/// Errors: a mix of the two kinds of start, fewer than [`MIN_POINTS`] points for some part (named),
+/// or a part's fit failing.
+pub fn partition(
     points: &[DVec3],
-    k: usize,
+    opts: &[FitOptions],
     rounds: u32,
-    opts: &FitOptions,
-) -> Result<PartsReport, FitError> {
+) -> Result<Partition, FitError> {
     super::fit::validate_points(points)?;
+    let k = opts.len();
     if k == 0 || points.len() < k * MIN_POINTS {
         return Err(FitError::BadOption(format!(
             "{k} parts need at least {} points ({MIN_POINTS} each); the cloud has {}",
@@ -101,17 +119,49 @@ pub fn fit_parts(
             points.len()
         )));
     }
-    let mut owner = kmeans(points, k, 50);
+    let explicit: Vec<Option<InitialPose>> = opts
+        .iter()
+        .map(|o| match o.init {
+            Initialization::Explicit(pose) => Some(pose),
+            Initialization::Moments => None,
+        })
+        .collect();
+    let mut owner = if explicit.iter().all(Option::is_none) {
+        kmeans(points, k, 50)
+    } else if let Some(poses) = explicit.iter().copied().collect::<Option<Vec<_>>>() {
+        let surfaces: Vec<(Tessellation, ModelState)> = poses
+            .iter()
+            .zip(opts)
+            .map(|(pose, o)| {
+                let tess = Tessellation::new(o.k);
+                let state = ModelState::new(
+                    &tess,
+                    pose.translation,
+                    pose.rotation,
+                    pose.shape.normalized(),
+                );
+                (tess, state)
+            })
+            .collect();
+        nearest_surface(points, surfaces.iter().map(|(t, s)| (t, s)))
+    } else {
+        return Err(FitError::BadOption(
+            "the parts must all start from the moments of their points or all from explicit poses"
+                .into(),
+        ));
+    };
     // The partition rounds fit pure superquadrics: a membrane would stretch each part over its
     // neighbour's points and keep them. The local DOFs come in once the partition has settled.
-    let global = FitOptions {
-        global_only: true,
-        ..*opts
-    };
-    let mut starts: Vec<Initialization> = vec![Initialization::Moments; k];
-    let mut parts: Vec<FitReport> = Vec::new();
-    let mut stable = false;
+    let mut global: Vec<FitOptions> = opts
+        .iter()
+        .map(|o| FitOptions {
+            global_only: true,
+            ..*o
+        })
+        .collect();
+    let mut fits: Vec<FitReport> = Vec::new();
     let mut taken = 0;
+    let mut moved = 0;
     for _ in 0..rounds.max(1) {
         taken += 1;
         let members = members_of(points, &owner, k);
@@ -125,48 +175,75 @@ pub fn fit_parts(
                 m.len()
             )));
         }
-        parts = fit_each(&members, &starts, &global)?;
-        // Every point to the part whose surface is nearest.
-        let mut best = vec![(f64::INFINITY, 0usize); points.len()];
-        for (j, part) in parts.iter().enumerate() {
-            let mut x = Vec::new();
-            part.state.node_positions(&part.tess, &mut x);
-            for (i, d) in point_distances(&part.tess, &x, points)
-                .into_iter()
-                .enumerate()
-            {
-                if d < best[i].0 {
-                    best[i] = (d, j);
-                }
-            }
+        fits = fit_each(&members, &global)?;
+        let next = nearest_surface(points, fits.iter().map(|f| (&f.tess, &f.state)));
+        for (o, f) in global.iter_mut().zip(&fits) {
+            o.init = Initialization::Explicit(InitialPose::of(&f.state));
         }
-        let next: Vec<usize> = best.into_iter().map(|(_, j)| j).collect();
-        starts = parts
-            .iter()
-            .map(|p| {
-                Initialization::Explicit(InitialPose {
-                    translation: p.state.translation,
-                    rotation: p.state.rotation,
-                    shape: p.state.shape,
-                })
-            })
-            .collect();
-        if next == owner {
-            stable = true;
+        moved = next.iter().zip(&owner).filter(|(a, b)| a != b).count();
+        owner = next;
+        if moved == 0 {
             break;
         }
-        owner = next;
     }
-    if super::fit::has_joint_stage(opts) {
-        let members = members_of(points, &owner, k);
-        parts = fit_each(&members, &starts, opts)?;
-    }
-    Ok(PartsReport {
-        parts,
+    Ok(Partition {
+        fits,
         owner,
         rounds: taken,
-        stable,
+        stable: moved == 0,
+        moved,
     })
+}
+
+/// Fits `k` parts to `points` (see the module docs), at most `rounds` rounds: the [`partition`]
+/// of `k` parts fitted with `opts` from k-means clusters, then, when `opts` has local DOFs, each
+/// part fitted once more with them to its points from its last global fit. Errors as
+/// [`partition`]'s.
+pub fn fit_parts(
+    points: &[DVec3],
+    k: usize,
+    rounds: u32,
+    opts: &FitOptions,
+) -> Result<Partition, FitError> {
+    let each = vec![
+        FitOptions {
+            init: Initialization::Moments,
+            ..*opts
+        };
+        k
+    ];
+    let mut split = partition(points, &each, rounds)?;
+    if super::fit::has_joint_stage(opts) {
+        let members = members_of(points, &split.owner, k);
+        let joint: Vec<FitOptions> = split
+            .fits
+            .iter()
+            .map(|f| FitOptions {
+                init: Initialization::Explicit(InitialPose::of(&f.state)),
+                ..*opts
+            })
+            .collect();
+        split.fits = fit_each(&members, &joint)?;
+    }
+    Ok(split)
+}
+
+/// The index of the surface nearest each point, among `surfaces` (tessellation and state).
+fn nearest_surface<'a>(
+    points: &[DVec3],
+    surfaces: impl Iterator<Item = (&'a Tessellation, &'a ModelState)>,
+) -> Vec<usize> {
+    let mut best = vec![(f64::INFINITY, 0usize); points.len()];
+    let mut x = Vec::new();
+    for (j, (tess, state)) in surfaces.enumerate() {
+        state.node_positions(tess, &mut x);
+        for (b, d) in best.iter_mut().zip(point_distances(tess, &x, points)) {
+            if d < b.0 {
+                *b = (d, j);
+            }
+        }
+    }
+    best.into_iter().map(|(_, j)| j).collect()
 }
 
 /// The points of each of `k` parts.
@@ -183,27 +260,12 @@ fn members_of(points: &[DVec3], owner: &[usize], k: usize) -> Vec<Vec<DVec3>> {
         .collect()
 }
 
-/// Fits every part to its points from its start, the parts spread over the cores.
-fn fit_each(
-    members: &[Vec<DVec3>],
-    starts: &[Initialization],
-    opts: &FitOptions,
-) -> Result<Vec<FitReport>, FitError> {
-    let jobs: Vec<(&Vec<DVec3>, Initialization)> =
-        members.iter().zip(starts.iter().copied()).collect();
-    run_parallel(
-        &jobs,
-        |(m, init), _| {
-            let o = FitOptions {
-                init: *init,
-                ..*opts
-            };
-            fit(m, &o, |_| {})
-        },
-        &mut |_| {},
-    )
-    .into_iter()
-    .collect()
+/// Fits every part to its points with its options, the parts spread over the cores.
+fn fit_each(members: &[Vec<DVec3>], opts: &[FitOptions]) -> Result<Vec<FitReport>, FitError> {
+    let jobs: Vec<(&Vec<DVec3>, &FitOptions)> = members.iter().zip(opts).collect();
+    run_parallel(&jobs, |(m, o), _| fit(m, o, |_| {}), &mut |_| {})
+        .into_iter()
+        .collect()
 }
 
 #[cfg(test)]
@@ -212,6 +274,18 @@ mod tests {
     use crate::model::superquadric::SuperquadricParams;
     use crate::synthetic::superquadric_cloud;
     use bevy::math::DQuat;
+
+    /// Points on two superquadrics (shape, centre, count), with noise; and how many are on the first.
+    fn two_clouds(
+        a: (&SuperquadricParams, DVec3, usize),
+        b: (&SuperquadricParams, DVec3, usize),
+        noise: f64,
+    ) -> (Vec<DVec3>, usize) {
+        let mut points = superquadric_cloud(a.0, a.1, DQuat::IDENTITY, a.2, noise, 3);
+        let n = points.len();
+        points.extend(superquadric_cloud(b.0, b.1, DQuat::IDENTITY, b.2, noise, 4));
+        (points, n)
+    }
 
     #[test]
     fn two_touching_parts_are_separated_and_each_fitted() {
@@ -234,16 +308,7 @@ mod tests {
         };
         let c_body = DVec3::ZERO;
         let c_post = DVec3::new(1.45, 0.0, 0.6);
-        let mut points = superquadric_cloud(&body, c_body, DQuat::IDENTITY, 600, 0.01, 3);
-        let n_body = points.len();
-        points.extend(superquadric_cloud(
-            &post,
-            c_post,
-            DQuat::IDENTITY,
-            500,
-            0.01,
-            4,
-        ));
+        let (points, n_body) = two_clouds((&body, c_body, 600), (&post, c_post, 500), 0.01);
         let report = fit_parts(&points, 2, 6, &FitOptions::default()).expect("fit");
         assert_eq!(report.owner.len(), points.len());
         assert!(report.owner.iter().all(|&o| o < 2));
@@ -258,13 +323,44 @@ mod tests {
             share(n_body..points.len(), post_part),
         );
         assert!(b > 0.95 && p > 0.95, "body {b:.3}, post {p:.3}");
-        for (j, part) in report.parts.iter().enumerate() {
+        for (j, part) in report.fits.iter().enumerate() {
             assert!(part.state.is_finite());
             assert!(part.residuals.mean < 0.01, "part {j}: {:?}", part.residuals);
         }
         // The post's part is centred on the post.
-        let post_fit = &report.parts[post_part].state;
+        let post_fit = &report.fits[post_part].state;
         assert!(post_fit.translation.distance(c_post) < 0.1, "{post_fit:?}");
+    }
+
+    #[test]
+    fn explicit_starts_split_by_the_nearest_initial_surface_and_mixed_starts_are_refused() {
+        // Two unit spheres 4 apart; each part starts as a small sphere near one of them.
+        let sphere = SuperquadricParams::default();
+        let (c0, c1) = (DVec3::ZERO, DVec3::new(4.0, 0.0, 0.0));
+        let (points, n0) = two_clouds((&sphere, c0, 300), (&sphere, c1, 300), 0.0);
+        let small = SuperquadricParams { a: 0.5, ..sphere };
+        let at = |c: DVec3| FitOptions {
+            k: 11,
+            init: Initialization::Explicit(InitialPose {
+                translation: c + DVec3::splat(0.2),
+                rotation: DQuat::IDENTITY,
+                shape: small,
+            }),
+            ..FitOptions::default()
+        };
+        // Listed far sphere first: the split follows the starts, not the order of the points.
+        let p = partition(&points, &[at(c1), at(c0)], 4).expect("partition");
+        assert!(p.owner[..n0].iter().all(|&o| o == 1), "first sphere");
+        assert!(p.owner[n0..].iter().all(|&o| o == 0), "second sphere");
+        assert!(p.stable && p.moved == 0, "{} moved", p.moved);
+        assert!(p.fits[0].state.translation.distance(c1) < 0.05);
+        assert!((p.fits[1].state.shape.a - 1.0).abs() < 0.05);
+        let moments = FitOptions {
+            init: Initialization::Moments,
+            ..at(c0)
+        };
+        let e = partition(&points, &[at(c1), moments], 4).unwrap_err();
+        assert!(e.to_string().contains("all start from"), "{e}");
     }
 
     #[test]

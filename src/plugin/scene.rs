@@ -201,7 +201,10 @@ fn spawn_part(
             outliers,
             ..
         } => {
-            let points = scene.data.range_points(part).unwrap_or_default();
+            let points = scene
+                .data
+                .range_points(&scene.def, index)
+                .unwrap_or_default();
             let mut options = part.fit_options(&state);
             // The fit's rest threshold is relative to the data's RMS radius.
             options.tolerance *= Normalization::of(&points).scale;
