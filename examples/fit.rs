@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! cargo run --release --example fit -- (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll)
-//!     [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] [--max-steps N] [--out-mesh FILE.obj]
+//!     [--nodes N | --k K] [--w0 F] [--w1 F|auto] [--beta F] [--max-steps N] [--out-mesh FILE.obj]
 //!     [--out-params FILE.json] [--quiet]
 //!     points only: [--global-only] [--plane] [--outliers F] [--refine] [--switch] [--robust]
 //!                  [--migrate] [--reassign N] [--parts N] [--app]
@@ -54,7 +54,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use std::time::Instant;
 
-const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F] [--beta F] \
+const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F|auto] [--beta F] \
 [--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--plane] [--outliers F] [--refine] [--switch] [--robust] [--migrate] [--reassign N] [--parts N] [--app]; \
 images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]; scenes: [--out-scene FILE.dsq.ron]";
 
@@ -76,6 +76,8 @@ struct Args {
     app: bool,
     out_scene: Option<PathBuf>,
     max_steps_override: Option<u32>,
+    /// `--w1 auto`: w0 and w1 from the noise the points show.
+    stiffness_from_noise: bool,
 }
 
 fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
@@ -88,6 +90,7 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
     let mut scene_path = None;
     let mut max_steps_override = None;
     let mut out_scene = None;
+    let mut stiffness_from_noise = false;
     let (mut out_mesh, mut out_params, mut quiet, mut app) = (None, None, false, false);
     fn value<T: std::str::FromStr>(flag: &str, v: Option<String>) -> Result<T, String> {
         let v = v.ok_or_else(|| format!("{flag} needs a value"))?;
@@ -126,10 +129,13 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
                 o.dynamics.w0 = finite(&a, value(&a, args.next())?, 0.0)?;
                 image.options.dynamics.w0 = o.dynamics.w0;
             }
-            "--w1" => {
-                o.dynamics.w1 = finite(&a, value(&a, args.next())?, 0.0)?;
-                image.options.dynamics.w1 = o.dynamics.w1;
-            }
+            "--w1" => match args.next() {
+                Some(v) if v == "auto" => stiffness_from_noise = true,
+                v => {
+                    o.dynamics.w1 = finite(&a, value(&a, v)?, 0.0)?;
+                    image.options.dynamics.w1 = o.dynamics.w1;
+                }
+            },
             "--beta" => {
                 o.beta = finite(&a, value(&a, args.next())?, f64::MIN_POSITIVE)?;
                 image.options.beta = o.beta;
@@ -256,6 +262,12 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
     if out_scene.is_some() && !matches!(source, Source::Scene(_)) {
         return Err(format!("--out-scene needs --scene\n{USAGE}"));
     }
+    if stiffness_from_noise && matches!(source, Source::Image(_) | Source::Scene(_)) {
+        return Err(
+            "--w1 auto reads the noise of a point cloud; give w1 a number for images and scenes"
+                .into(),
+        );
+    }
     let args = Args {
         source,
         options: o,
@@ -266,6 +278,7 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
         image,
         out_scene,
         max_steps_override,
+        stiffness_from_noise,
     };
     Ok((args, paper_points))
 }
@@ -286,6 +299,15 @@ fn run() -> Result<(), String> {
         (Source::Paper(name), None) => return Err(format!("no data for --paper {name}")),
         (Source::Image(_) | Source::Scene(_), _) => unreachable!("returned above"),
     };
+    // `--w1 auto`: the stiffness from the noise of the whole cloud.
+    let (options, noise) = if args.stiffness_from_noise {
+        let (o, noise) = args.options.with_stiffness_from_noise(&points);
+        let noise = noise.ok_or_else(|| format!("{name}: too few points to estimate the noise"))?;
+        (o, Some(noise))
+    } else {
+        (args.options, None)
+    };
+    let args = Args { options, ..args };
     if args.image.auto_parts > 1 {
         return run_parts(&points, &name, &args);
     }
@@ -323,7 +345,7 @@ fn run() -> Result<(), String> {
         std::fs::write(path, json).map_err(|e| format!("{}: cannot write: {e}", path.display()))?;
     }
     let through = if args.app { "plugin" } else { "core" };
-    let summary = range_summary(
+    let mut summary = range_summary(
         &name,
         &report,
         points.len(),
@@ -331,6 +353,11 @@ fn run() -> Result<(), String> {
         through,
         args.options.global_only,
     );
+    if let Some(noise) = noise {
+        summary["noise"] = noise.relative.into();
+        summary["w0"] = args.options.dynamics.w0.into();
+        summary["w1"] = args.options.dynamics.w1.into();
+    }
     println!("{summary}");
     Ok(())
 }

@@ -88,6 +88,23 @@ pub fn egg() -> Vec<DVec3> {
     Rng::new(233).choose(&pts, 499)
 }
 
+/// A point of the ridged egg: the [`egg_radius`] egg along x with five ridges round its axis
+/// (radius × (1 + 0.08 cos 5φ)), a surface with detail no superquadric has; `s` ∈ [−1, 1] along the
+/// axis, `phi` the angle round it.
+pub fn ridged_egg_at(s: f64, phi: f64) -> DVec3 {
+    let r = egg_radius(s * EGG_HALF_LENGTH) * (1.0 + 0.08 * (5.0 * phi).cos());
+    DVec3::new(EGG_HALF_LENGTH * s, r * phi.cos(), r * phi.sin())
+}
+
+/// `n` points over the whole ridged egg ([`ridged_egg_at`]; uniform in s and φ, which is
+/// area-uniform on a sphere), without noise.
+pub fn ridged_egg(n: usize, seed: u64) -> Vec<DVec3> {
+    let mut rng = Rng::new(seed);
+    (0..n)
+        .map(|_| ridged_egg_at(rng.range(-1.0, 1.0), rng.range(-PI, PI)))
+        .collect()
+}
+
 /// Mug radius.
 pub const MUG_RADIUS: f64 = 0.5;
 /// Mug half height.

@@ -130,6 +130,29 @@ fn bad_options_exit_2() {
 }
 
 #[test]
+fn w1_auto_takes_the_stiffness_from_the_clouds_noise_and_is_refused_for_scenes() {
+    let cloud = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/data/hippo1_scan.obj");
+    let lines = json_lines(&run(&[cloud, "--w1", "auto", "--global-only", "--quiet"]));
+    let line = &lines[0];
+    let (noise, w1) = (
+        line["noise"].as_f64().unwrap(),
+        line["w1"].as_f64().unwrap(),
+    );
+    assert!(noise > 0.0 && noise < 0.02, "{line}");
+    assert!((0.003..0.1).contains(&w1), "{line}");
+    assert!(
+        (line["w0"].as_f64().unwrap() - w1 / 100.0).abs() < 1e-15,
+        "{line}"
+    );
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/scenes/egg.dsq.ron");
+    assert_bad_input(
+        &["--scene", scene, "--w1", "auto"],
+        "--w1 auto",
+        "point cloud",
+    );
+}
+
+#[test]
 fn fits_a_shipped_cloud_and_writes_mesh_and_params() {
     let dir = scratch();
     let cloud = concat!(

@@ -150,6 +150,27 @@ impl FitOptions {
     }
 }
 
+impl FitOptions {
+    /// These options with the membrane stiffness (w0, w1) chosen from the noise `points` show
+    /// ([`super::noise::estimate_noise`], [`super::noise::stiffness_for_noise`]), and the estimate;
+    /// unchanged options and `None` when the noise cannot be estimated (too few points).
+    pub fn with_stiffness_from_noise(
+        self,
+        points: &[DVec3],
+    ) -> (Self, Option<super::noise::NoiseEstimate>) {
+        let Some(noise) = super::noise::estimate_noise(points) else {
+            return (self, None);
+        };
+        let (w0, w1) = super::noise::stiffness_for_noise(noise.relative);
+        let dynamics = DynamicsParams {
+            w0,
+            w1,
+            ..self.dynamics
+        };
+        (Self { dynamics, ..self }, Some(noise))
+    }
+}
+
 /// The prior outlier fraction of [`FitOptions::robust`].
 pub const ROBUST_OUTLIER_RATIO: f64 = 0.2;
 

@@ -5,7 +5,7 @@
 //! Read top to bottom: [`superquadric`] (s, J) → [`frame`] (R, B) → [`fem`] (tessellation,
 //! element stiffness, K q) → [`dynamics`] (f_q, C, the Euler step) → [`forces`] (range springs, image
 //! potentials) → [`init`] (moments) → [`fit`] (the loop to equilibrium for range data) →
-//! [`parts`] (several parts on one cloud) → [`image_fit`] (parts fitted to an image) → [`descriptor`] (fitted parts compared by their
+//! [`parts`] (several parts on one cloud) → [`noise`] (the noise of a cloud and the stiffness it calls for) → [`image_fit`] (parts fitted to an image) → [`descriptor`] (fitted parts compared by their
 //! global parameters).
 
 pub mod descriptor;
@@ -17,5 +17,6 @@ pub mod frame;
 pub mod image_fit;
 pub mod init;
 pub mod linalg;
+pub mod noise;
 pub mod parts;
 pub mod superquadric;
