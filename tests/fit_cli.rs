@@ -51,6 +51,27 @@ fn json_lines(out: &Output) -> Vec<serde_json::Value> {
         .collect()
 }
 
+/// Asserts that the `|`-separated cells `cells` of a table row each hold `n` finite, non-negative
+/// numbers separated by `/` (a trailing `°` allowed).
+fn assert_numeric_cells(row: &str, cells: std::ops::Range<usize>, n: usize) {
+    let all: Vec<&str> = row.split('|').map(str::trim).collect();
+    for cell in &all[cells] {
+        let v: Vec<f64> = cell
+            .split('/')
+            .map(|x| {
+                x.trim()
+                    .trim_end_matches('°')
+                    .parse()
+                    .unwrap_or_else(|e| panic!("{e}: {row}"))
+            })
+            .collect();
+        assert!(
+            v.len() == n && v.iter().all(|x| x.is_finite() && *x >= 0.0),
+            "{row}"
+        );
+    }
+}
+
 fn assert_bad_input(args: &[&str], file_hint: &str, what: &str) {
     let out = run(args);
     let err = String::from_utf8_lossy(&out.stderr);
@@ -397,14 +418,7 @@ fn the_ems_comparison_example_prints_a_row_per_cloud() {
     assert_eq!(rows.len(), 6, "{text}");
     for row in rows {
         // Every residual cell parses as two finite numbers.
-        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
-        for cell in &cells[2..6] {
-            let v: Vec<f64> = cell.split('/').map(|x| x.trim().parse().unwrap()).collect();
-            assert!(
-                v.len() == 2 && v.iter().all(|x| x.is_finite() && *x >= 0.0),
-                "{row}"
-            );
-        }
+        assert_numeric_cells(row, 2..6, 2);
     }
 }
 
@@ -465,17 +479,7 @@ fn the_ground_truth_example_scores_ours_and_ems_with_finite_errors() {
     // Header, two clouds, the medians.
     assert_eq!(rows.len(), 4, "{text}");
     for row in &rows[1..] {
-        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
-        for cell in &cells[3..6] {
-            let v: Vec<f64> = cell
-                .split('/')
-                .map(|x| x.trim().trim_end_matches('°').parse().unwrap())
-                .collect();
-            assert!(
-                v.len() == 4 && v.iter().all(|x| x.is_finite() && *x >= 0.0),
-                "{row}"
-            );
-        }
+        assert_numeric_cells(row, 3..6, 4);
     }
 }
 

@@ -470,7 +470,7 @@ pub fn fit_part(
     })
 }
 
-/// Fits every part in `initial` to the image (each on its own, in parallel over parts).
+/// Fits every part in `initial` to the image (each on its own, the parts spread over the cores).
 pub fn fit_image(
     potential: Arc<ImagePotential>,
     initial: &[PartAxes],
@@ -478,19 +478,14 @@ pub fn fit_image(
 ) -> Result<Vec<ImagePartFit>, StepError> {
     let tess = Tessellation::new(opts.k);
     let forces = opts.forces(potential);
-    std::thread::scope(|scope| {
-        let handles: Vec<_> = initial
-            .iter()
-            .map(|axes| {
-                let (tess, forces) = (&tess, &forces);
-                scope.spawn(move || fit_part(tess, forces, axes.state(tess), opts))
-            })
-            .collect();
-        handles
-            .into_iter()
-            .map(|h| h.join().expect("image fit thread panicked"))
-            .collect()
-    })
+    // The parts spread over the cores (as range parts are), not a thread per part.
+    super::fit::run_parallel(
+        initial,
+        |axes, _| fit_part(&tess, &forces, axes.state(&tess), opts),
+        &mut |_| {},
+    )
+    .into_iter()
+    .collect()
 }
 
 /// The projected outline of a model (see [`for_each_outline_edge`]) as plane segments.

@@ -19,8 +19,9 @@
 //! `examples/noise.rs` (README, "Noise and the membrane's stiffness").
 
 use super::fit::Normalization;
+use super::init::{Moments, moments};
 use super::linalg::{cholesky_solve, symmetric_eigen3};
-use bevy::math::{DMat3, DVec3};
+use bevy::math::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use std::num::NonZeroUsize;
 
@@ -92,15 +93,15 @@ fn quadric_residual_variance(near: &[DVec3]) -> Option<f64> {
     if n <= 6 {
         return None;
     }
-    let c = near.iter().copied().sum::<DVec3>() / n as f64;
-    let cov = near.iter().fold(DMat3::ZERO, |m, p| {
-        let d = *p - c;
-        m + DMat3::from_cols(d * d.x, d * d.y, d * d.z)
-    }) / n as f64;
-    let (_, frame) = symmetric_eigen3(&cov);
+    let Moments {
+        centroid: c,
+        covariance,
+    } = moments(near);
+    let (spread, frame) = symmetric_eigen3(&covariance);
     // Columns ascending: the normal first, then the two tangents.
     let (normal, t1, t2) = (frame.col(0), frame.col(1), frame.col(2));
-    let size = cov.col(2).length().max(cov.col(1).length()).sqrt();
+    // The neighbourhood's size along its widest tangent, to keep the normal equations well scaled.
+    let size = spread.z.max(0.0).sqrt();
     if !(size > 0.0) {
         return None;
     }
