@@ -566,6 +566,11 @@ fn run_scene_file(path: &Path, args: &Args) -> Result<(), String> {
         };
         line["part"] = (i + 1).into();
         line["name"] = part.name.clone().into();
+        if let Some(noise) = data.noise.get(&i) {
+            line["noise"] = noise.relative.into();
+            line["w0"] = part.w0.into();
+            line["w1"] = part.w1.into();
+        }
         println!("{line}");
         lines.push(line);
         let mut x = Vec::new();

@@ -41,6 +41,7 @@ use crate::model::forces::image::{
 use crate::model::forces::range::{DEFAULT_COVERAGE, InfluenceMode};
 use crate::model::image_fit::{ImageFitOptions, ImagePartFit, PartAxes, fit_part};
 use crate::model::init::{InitialPose, initial_pose};
+use crate::model::noise::{NOISE_NEIGHBOURS, NoiseEstimate, estimate_noise, stiffness_for_noise};
 use crate::model::parts::{PARTITION_ROUNDS, partition};
 use crate::model::superquadric::{MAX_EPSILON, MIN_EPSILON, SuperquadricParams};
 use bevy::math::{DQuat, DVec2, DVec3};
@@ -212,6 +213,12 @@ pub struct PartDef {
     /// Membrane stiffness on the first derivatives of d (eq. 13), ≥ 0.
     #[serde(default = "default_w1")]
     pub w1: f64,
+    /// Choose `w0` and `w1` from the noise of the part's range points when the scene loads,
+    /// replacing the values written: w1 grows with the noise over the cloud's size and w0 =
+    /// w1 / 100 ([`crate::model::noise`]; the command-line fitter's `--w1 auto`). Needs range
+    /// forces; a part sharing its source is judged on its share.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub stiffness_from_noise: bool,
     /// Damping densities.
     #[serde(default)]
     pub damping: Damping,
@@ -668,7 +675,21 @@ impl SceneDef {
         }
     }
 
-    /// Reads and checks a scene file and loads its data from the files next to it.
+    /// Sets `w0` and `w1` of every part whose stiffness comes from its data's noise
+    /// ([`PartDef::stiffness_from_noise`]) from the estimate in `data` (made by
+    /// [`SceneData::resolve`]). [`SceneDef::load_file`] and the asset loader do this.
+    pub fn apply_noise_stiffness(&mut self, data: &SceneData) {
+        for (&i, noise) in &data.noise {
+            if let Some(part) = self.parts.get_mut(i)
+                && part.stiffness_from_noise
+            {
+                (part.w0, part.w1) = stiffness_for_noise(noise.relative);
+            }
+        }
+    }
+
+    /// Reads and checks a scene file, loads its data from the files next to it and sets the
+    /// stiffness of parts that take it from their data's noise.
     pub fn load_file(file: &Path) -> Result<(SceneDef, SceneData), SceneError> {
         let text = std::fs::read_to_string(file).map_err(|e| SceneError {
             file: file.to_path_buf(),
@@ -676,11 +697,12 @@ impl SceneDef {
             field: None,
             message: format!("cannot read: {e}"),
         })?;
-        let def = SceneDef::parse(&text, file)?;
+        let mut def = SceneDef::parse(&text, file)?;
         let dir = file.parent().unwrap_or(Path::new("")).to_path_buf();
         let data = SceneData::resolve(&def, file, |rel| {
             std::fs::read(dir.join(rel)).map_err(|e| format!("cannot read {rel:?}: {e}"))
         })?;
+        def.apply_noise_stiffness(&data);
         Ok((def, data))
     }
 
@@ -760,6 +782,7 @@ impl PartDef {
             k: default_k(),
             w0: default_w0(),
             w1: default_w1(),
+            stiffness_from_noise: false,
             damping: Damping::default(),
             dt: default_dt(),
             reassign_every: default_reassign(),
@@ -831,6 +854,14 @@ impl PartDef {
         }
         check(file, &f("w0"), self.w0, 0.0, false)?;
         check(file, &f("w1"), self.w1, 0.0, false)?;
+        if self.stiffness_from_noise && !matches!(self.forces, Forces::Range { .. }) {
+            return Err(SceneError::at_field(
+                file,
+                f("stiffness_from_noise"),
+                "the stiffness comes from the noise of the part's range points: the part needs \
+                 `forces: Range(..)`",
+            ));
+        }
         check(file, &f("dt"), self.dt, 0.0, true)?;
         if let Some(g) = self.damping.global {
             check(file, &f("damping.global"), g, 0.0, true)?;
@@ -1082,6 +1113,9 @@ pub struct SceneData {
     pub images: HashMap<String, Arc<ImagePotential>>,
     /// How each source shared by two or more parts was split among them, by source name.
     pub splits: HashMap<String, Split>,
+    /// The noise of the range points of each part whose stiffness comes from it
+    /// ([`PartDef::stiffness_from_noise`]), by part index.
+    pub noise: HashMap<usize, NoiseEstimate>,
 }
 
 /// How a shared source's points were split among its parts ([`crate::model::parts::partition`]).
@@ -1155,7 +1189,8 @@ impl SceneData {
         }
         for (i, part) in def.parts.iter().enumerate() {
             if let Forces::Range { .. } = part.forces {
-                let n = out.range_points(def, i).map_or(0, |p| p.len());
+                let points = out.range_points(def, i).unwrap_or_default();
+                let n = points.len();
                 if n < crate::model::fit::MIN_POINTS {
                     return Err(SceneError::at_field(
                         file,
@@ -1165,6 +1200,19 @@ impl SceneData {
                             crate::model::fit::MIN_POINTS
                         ),
                     ));
+                }
+                if part.stiffness_from_noise {
+                    let noise = estimate_noise(&points).ok_or_else(|| {
+                        SceneError::at_field(
+                            file,
+                            format!("parts[{i}].stiffness_from_noise"),
+                            format!(
+                                "cannot estimate the noise of the part's {n} data points (it needs \
+                                 at least {NOISE_NEIGHBOURS} points spread in space)"
+                            ),
+                        )
+                    })?;
+                    out.noise.insert(i, noise);
                 }
             }
         }

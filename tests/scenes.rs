@@ -390,6 +390,69 @@ fn a_crop_that_leaves_too_few_points_is_refused() {
     assert_names(&e, Some("parts[0].forces"), None, "0 data points");
 }
 
+/// A scene (in its own scratch directory) with one range part on a ridged egg with Gaussian
+/// noise of `sigma` along every axis, written as an OBJ; `flag` is written into the part.
+fn noisy_egg_scene(name: &str, sigma: f64, flag: &str) -> PathBuf {
+    let mut rng = synthetic::Rng::new(11);
+    let mut obj = String::new();
+    for p in synthetic::ridged_egg(2000, 5) {
+        let q = p + sigma * DVec3::new(rng.normal(), rng.normal(), rng.normal());
+        obj.push_str(&format!("v {} {} {}\n", q.x, q.y, q.z));
+    }
+    let dir = scratch(name);
+    std::fs::write(dir.join("egg.obj"), obj).unwrap();
+    let part = GOOD_PART.replace("w1: 0.1,", &format!("w1: 0.1,{flag}"));
+    let file = dir.join("noisy.dsq.ron");
+    std::fs::write(
+        &file,
+        scene_text(&part, r#""pts": Points(path: "egg.obj")"#),
+    )
+    .unwrap();
+    file
+}
+
+#[test]
+fn stiffness_from_noise_sets_w0_w1_from_the_parts_data_and_is_saved() {
+    use bevy_deformable_sq::model::noise::{estimate_noise, stiffness_for_noise};
+    let load = |file: &Path| SceneDef::load_file(file).unwrap_or_else(|e| panic!("{e}"));
+    let mut w1 = Vec::new();
+    for (i, sigma) in [0.002, 0.03].into_iter().enumerate() {
+        let file = noisy_egg_scene(&format!("noise{i}"), sigma, " stiffness_from_noise: true,");
+        let (def, data) = load(&file);
+        let part = &def.parts[0];
+        let noise = estimate_noise(&data.range_points(&def, 0).unwrap()).unwrap();
+        assert_eq!(data.noise.get(&0), Some(&noise));
+        assert_eq!((part.w0, part.w1), stiffness_for_noise(noise.relative));
+        assert_ne!(part.w1, 0.1, "the written w1 is replaced");
+        assert!(part.stiffness_from_noise);
+        // The flag is saved, so the stiffness is chosen again from the data when reloaded.
+        let text = def.to_ron().unwrap();
+        assert!(text.contains("stiffness_from_noise: true"), "{text}");
+        w1.push(part.w1);
+    }
+    assert!(w1[1] > 2.0 * w1[0], "more noise, stiffer membrane: {w1:?}");
+    // Without the flag the scene's own values stand, and no estimate is made.
+    let (def, data) = load(&noisy_egg_scene("noise-off", 0.03, ""));
+    assert_eq!((def.parts[0].w0, def.parts[0].w1), (0.001, 0.1));
+    assert!(data.noise.is_empty());
+    assert!(!def.to_ron().unwrap().contains("stiffness_from_noise"));
+}
+
+#[test]
+fn stiffness_from_noise_needs_range_forces() {
+    let part = GOOD_PART.replace(
+        r#"forces: Range(data: "pts"),"#,
+        "forces: Free, stiffness_from_noise: true,",
+    );
+    let e = parse_err(&scene_text(&part, PTS));
+    assert_names(
+        &e,
+        Some("parts[0].stiffness_from_noise"),
+        None,
+        "needs `forces: range",
+    );
+}
+
 #[test]
 fn a_shared_scan_is_split_so_every_point_pulls_on_one_part_and_the_parts_fit_closer_than_one() {
     let (def, data) = SceneDef::load_file(&shipped("cow_scan")).unwrap_or_else(|e| panic!("{e}"));
@@ -525,6 +588,25 @@ fn parts(app: &App, root: Entity) -> Vec<Entity> {
 
 fn shipped_assets() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("assets")
+}
+
+#[test]
+fn the_asset_loader_sets_the_stiffness_from_the_datas_noise() {
+    let file = noisy_egg_scene("noise-app", 0.03, " stiffness_from_noise: true,");
+    let (def, _) = SceneDef::load_file(&file).unwrap_or_else(|e| panic!("{e}"));
+    let mut app = scene_app(file.parent().unwrap());
+    let root = load(&mut app, "noisy.dsq.ron");
+    let instance = app.world().get::<SceneInstance>(root).unwrap();
+    assert!(instance.error.is_none(), "{:?}", instance.error);
+    let settings = app
+        .world()
+        .get::<ModelSettings>(parts(&app, root)[0])
+        .unwrap();
+    assert_eq!(
+        (settings.w0, settings.w1),
+        (def.parts[0].w0, def.parts[0].w1)
+    );
+    assert_ne!(settings.w1, 0.1);
 }
 
 #[test]

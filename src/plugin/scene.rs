@@ -91,6 +91,8 @@ impl AssetLoader for DeformableSceneLoader {
                 .cloned()
                 .unwrap_or_else(|| Err(format!("{rel:?} was not read")))
         })?;
+        let mut def = def;
+        def.apply_noise_stiffness(&data);
         Ok(DeformableScene { def, data })
     }
 
