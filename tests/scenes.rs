@@ -610,6 +610,32 @@ fn the_asset_loader_sets_the_stiffness_from_the_datas_noise() {
 }
 
 #[test]
+fn a_scene_parts_outlier_fraction_gives_it_robust_weights_through_the_plugin() {
+    let file = noisy_egg_scene("outliers-app", 0.01, "");
+    let text = std::fs::read_to_string(&file).unwrap();
+    let text = text.replace(
+        r#"Range(data: "pts")"#,
+        r#"Range(data: "pts", outliers: 0.2)"#,
+    );
+    std::fs::write(&file, text).unwrap();
+    let mut app = scene_app(file.parent().unwrap());
+    let root = load(&mut app, "noisy.dsq.ron");
+    let part = parts(&app, root)[0];
+    app.world_mut().run_schedule(Step);
+    let range = &app.world().get::<RangeData>(part).unwrap().forces;
+    let robust = range
+        .robust
+        .as_ref()
+        .expect("robust weights from the scene's outliers");
+    assert_eq!(robust.outlier_ratio, 0.2);
+    assert_eq!(
+        robust.inlier.len(),
+        range.points.len(),
+        "weighed at the first reassignment"
+    );
+}
+
+#[test]
 fn shipped_scenes_spawn_entities_that_simulate_and_despawn_with_the_root() {
     let mut app = scene_app(&shipped_assets());
     for (name, n) in SHIPPED {

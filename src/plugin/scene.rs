@@ -23,7 +23,6 @@ use super::{
 use crate::model::dynamics::ModelState;
 use crate::model::fit::{Normalization, Stage, global_stages, has_joint_stage};
 use crate::model::forces::range::RangeForces;
-use crate::model::forces::range::Robust;
 use crate::scene::{Forces, PartDef, SCENE_EXTENSION, SceneData, SceneDef, SceneError};
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext, LoadState};
@@ -70,7 +69,7 @@ impl AssetLoader for DeformableSceneLoader {
             .await
             .map_err(|e| fail(format!("cannot read: {e}")))?;
         let text = std::str::from_utf8(&bytes).map_err(|e| fail(format!("not UTF-8: {e}")))?;
-        let def = SceneDef::parse(text, &file)?;
+        let mut def = SceneDef::parse(text, &file)?;
         let mut files: HashMap<String, Result<Vec<u8>, String>> = HashMap::new();
         for (_, rel) in def.data_files() {
             if files.contains_key(rel) {
@@ -91,7 +90,6 @@ impl AssetLoader for DeformableSceneLoader {
                 .cloned()
                 .unwrap_or_else(|| Err(format!("{rel:?} was not read")))
         })?;
-        let mut def = def;
         def.apply_noise_stiffness(&data);
         Ok(DeformableScene { def, data })
     }
@@ -200,7 +198,6 @@ fn spawn_part(
             beta,
             coverage,
             influence,
-            outliers,
             ..
         } => {
             let points = scene
@@ -216,7 +213,6 @@ fn spawn_part(
             }
             let mut forces = RangeForces::new(points, *beta, *influence);
             forces.coverage = *coverage;
-            forces.robust = (*outliers > 0.0).then(|| Robust::new(*outliers));
             e.insert((
                 RangeData {
                     forces,
