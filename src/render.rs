@@ -136,6 +136,7 @@ pub fn surface_vertices(
         DVec3::ZERO,
         DQuat::IDENTITY,
         &(*shape).into(),
+        &shape.deformation(),
         &local.displacement,
         points,
     );

@@ -32,6 +32,7 @@
 //! ```
 
 use crate::io::{decode_luminance, decode_points};
+use crate::model::deform::{GlobalDeformation, MAX_BEND, MAX_BEND_WIDTH, MAX_TAPER};
 use crate::model::dynamics::{DynamicsParams, FreeDofs, ModelState, StepError};
 use crate::model::fem::{MIN_K, Tessellation};
 use crate::model::fit::{FitError, FitOptions, FitReport, Initialization, fit};
@@ -240,6 +241,11 @@ pub struct PartDef {
     /// Local displacements d_i, one per node (k² + 2), in the model frame; absent: zero.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub local: Option<Vec<[f64; 3]>>,
+    /// Tapering and bending of the superquadric ([`crate::model::deform`]), whatever the
+    /// placement: `(taper: (t_x, t_y), bend: (b_x, b_y))`; absent: none. They move only when
+    /// `free.taper` / `free.bend` say so.
+    #[serde(default, skip_serializing_if = "GlobalDeformation::is_identity")]
+    pub deformation: GlobalDeformation,
 }
 
 /// Where a part starts.
@@ -306,6 +312,12 @@ pub struct Freedoms {
     /// Image-plane motion only, depth ratio held.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub planar: Option<bool>,
+    /// Let the tapering coordinates move ([`crate::model::deform`]; beyond the paper).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub taper: bool,
+    /// Let the bending coordinates move ([`crate::model::deform`]; beyond the paper).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub bend: bool,
 }
 
 /// The forces on a part. β is per unit material area in both cases.
@@ -656,6 +668,7 @@ impl SceneDef {
             rotation: Rotation::from_quat(state.rotation),
             shape: state.shape,
         };
+        part.deformation = state.deformation;
         part.local = (include_local && !state.displacement.is_empty())
             .then(|| state.displacement.iter().map(|d| d.to_array()).collect());
     }
@@ -790,7 +803,50 @@ impl PartDef {
             forces: Forces::Free,
             fit: FitSettings::default(),
             local: None,
+            deformation: GlobalDeformation::IDENTITY,
         }
+    }
+
+    /// Tapering and bending within their bounds ([`GlobalDeformation::clamped`]); with a `Pose`
+    /// placement the bend must also keep the shape's widest section on the near side of the
+    /// centre of curvature.
+    fn validate_deformation(
+        &self,
+        file: &Path,
+        f: &dyn Fn(&str) -> String,
+    ) -> Result<(), SceneError> {
+        let d = &self.deformation;
+        check_finite(file, &f("deformation.taper"), &d.taper)?;
+        check_finite(file, &f("deformation.bend"), &d.bend)?;
+        if d.taper.iter().any(|t| t.abs() > MAX_TAPER) {
+            return Err(SceneError::at_field(
+                file,
+                f("deformation.taper"),
+                format!(
+                    "each of t_x, t_y must lie in [-{MAX_TAPER}, {MAX_TAPER}], found {:?}",
+                    d.taper
+                ),
+            ));
+        }
+        let axes = match &self.placement {
+            PartPlacement::Pose { shape, .. } => shape.semi_axes(),
+            // The shape comes from the data: only the bend's own bound can be checked here.
+            _ => DVec3::new(0.0, 0.0, f64::INFINITY),
+        };
+        let limit = d.clamped(axes).bend;
+        if d.bend != limit {
+            return Err(SceneError::at_field(
+                file,
+                f("deformation.bend"),
+                format!(
+                    "|b| = {} is beyond its bound {} (at most {MAX_BEND} rad, and at most \
+                     {MAX_BEND_WIDTH} × the z semi-axis over the widest tapered section)",
+                    d.bend[0].hypot(d.bend[1]),
+                    limit[0].hypot(limit[1])
+                ),
+            ));
+        }
+        Ok(())
     }
 
     fn validate(
@@ -845,6 +901,7 @@ impl PartDef {
                 }
             }
         }
+        self.validate_deformation(file, &f)?;
         if !(MIN_K..=MAX_K).contains(&self.k) {
             return Err(SceneError::at_field(
                 file,
@@ -1017,7 +1074,11 @@ impl PartDef {
                 _ => DynamicsParams::default().gamma_global,
             }),
             gamma_local: self.damping.local,
-            free: FreeDofs::with(!self.free.global_only, self.planar(), self.fix_epsilon()),
+            free: FreeDofs {
+                taper: self.free.taper,
+                bend: self.free.bend,
+                ..FreeDofs::with(!self.free.global_only, self.planar(), self.fix_epsilon())
+            },
             ..DynamicsParams::default()
         }
     }
@@ -1293,6 +1354,7 @@ impl SceneData {
                 translation: DVec3::from_array(translation),
                 rotation: rotation.to_quat().ok()?,
                 shape,
+                deformation: part.deformation,
                 displacement: vec![DVec3::ZERO; tess_nodes],
             },
             PartPlacement::Axes { major, minor } => {
@@ -1307,6 +1369,7 @@ impl SceneData {
                     translation,
                     rotation,
                     shape,
+                    deformation: part.deformation,
                     displacement: vec![DVec3::ZERO; tess_nodes],
                 }
             }
@@ -1316,6 +1379,7 @@ impl SceneData {
                     translation: pose.translation,
                     rotation: pose.rotation,
                     shape: pose.shape,
+                    deformation: part.deformation,
                     displacement: vec![DVec3::ZERO; tess_nodes],
                 }
             }

@@ -162,6 +162,75 @@ pub fn mug() -> Vec<DVec3> {
         .collect()
 }
 
+/// A curved, tapered tube closed by flat ends — a banana — built directly from its geometry
+/// (not from `model::deform`), for the tapering and bending fits.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Banana {
+    /// Radius of the circular arc the tube's axis follows.
+    pub arc_radius: f64,
+    /// The axis turns through ±`half_angle` radians either side of its middle.
+    pub half_angle: f64,
+    /// Radius of the circular cross-section at the middle.
+    pub radius: f64,
+    /// The cross-section's radius grows linearly along the arc, to (1 + `taper`) × `radius` at the
+    /// +z end and (1 − `taper`) × `radius` at the other.
+    pub taper: f64,
+}
+
+impl Default for Banana {
+    /// Arc radius 3 turning ±0.6 rad (an axis 3.6 long), radius 0.4 tapering by ±40 %.
+    fn default() -> Self {
+        Self {
+            arc_radius: 3.0,
+            half_angle: 0.6,
+            radius: 0.4,
+            taper: 0.4,
+        }
+    }
+}
+
+impl Banana {
+    /// `n` area-uniform points on the surface, with Gaussian noise of standard deviation `noise`
+    /// per coordinate. Model frame: the axis's middle at the origin, the axis along z there,
+    /// bending towards +x (the centre of the arc is at (`arc_radius`, 0, 0)).
+    pub fn points(&self, n: usize, noise: f64, seed: u64) -> Vec<DVec3> {
+        let mut rng = Rng::new(seed);
+        let (big_r, phi_max) = (self.arc_radius, self.half_angle);
+        let r_at = |phi: f64| self.radius * (1.0 + self.taper * phi / phi_max);
+        let axis = |phi: f64| DVec3::new(big_r * (1.0 - phi.cos()), 0.0, big_r * phi.sin());
+        // Outward direction (away from the arc's centre) at angle φ.
+        let outward = |phi: f64| DVec3::new(-phi.cos(), 0.0, phi.sin());
+        // Tube area 2π R ∫ r dφ; each end a disk π r².
+        let tube = 2.0 * PI * big_r * 2.0 * phi_max * self.radius;
+        let ends = [-phi_max, phi_max].map(|phi| PI * r_at(phi).powi(2));
+        let total = tube + ends[0] + ends[1];
+        let r_max = r_at(phi_max).max(r_at(-phi_max));
+        let mut out = Vec::with_capacity(n);
+        while out.len() < n {
+            let pick = rng.uniform() * total;
+            let p = if pick < tube {
+                // Area element r (R + r cos θ) dφ dθ: rejection from the largest.
+                let (phi, theta) = (rng.range(-phi_max, phi_max), rng.range(-PI, PI));
+                let r = r_at(phi);
+                if rng.uniform() * r_max * (big_r + r_max) > r * (big_r + r * theta.cos()) {
+                    continue;
+                }
+                axis(phi) + r * (theta.cos() * outward(phi) + theta.sin() * DVec3::Y)
+            } else {
+                let phi = if pick < tube + ends[0] {
+                    -phi_max
+                } else {
+                    phi_max
+                };
+                let (rho, theta) = (r_at(phi) * rng.uniform().sqrt(), rng.range(-PI, PI));
+                axis(phi) + rho * (theta.cos() * outward(phi) + theta.sin() * DVec3::Y)
+            };
+            out.push(p + noise * DVec3::new(rng.normal(), rng.normal(), rng.normal()));
+        }
+        out
+    }
+}
+
 /// `n` points on the superquadric `shape` placed at (`translation`, `rotation`), at material
 /// coordinates drawn so that a sphere would be sampled uniformly (u = asin(2r − 1)), with
 /// Gaussian noise of standard deviation `noise` (data units) added to each coordinate.

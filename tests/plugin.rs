@@ -65,6 +65,7 @@ fn start_shape() -> GlobalShape {
         a3: 1.0,
         e1: 1.0,
         e2: 1.0,
+        ..Default::default()
     }
 }
 
@@ -232,6 +233,9 @@ fn a_model_with_no_data_stays_at_rest() {
                 a3: 1.0,
                 e1: 0.6,
                 e2: 1.4,
+                // Tapered and bent, as a model may be.
+                taper: [0.2, -0.1],
+                bend: [0.1, 0.2],
             },
             RigidState::default(),
         ))
@@ -273,6 +277,7 @@ fn twenty_models_fit_at_once() {
             translation: rigid.translation,
             rotation: rigid.rotation,
             shape: shape.into(),
+            deformation: shape.deformation(),
             displacement: local.displacement,
         };
         let mut x = Vec::new();
@@ -443,6 +448,8 @@ fn components_round_trip_through_serde() {
         a3: 0.7,
         e1: 0.45,
         e2: 1.7,
+        taper: [0.25, -0.5],
+        bend: [0.1, 0.0],
     };
     let rigid = RigidState {
         translation: DVec3::new(1.0, -2.5, 1e-9),

@@ -169,6 +169,10 @@ fn a_saved_scene_parses_back_to_the_same_state_bit_for_bit() {
             e1: 0.1 + 0.7,
             e2: 1.999_999_999_999_999_8,
         },
+        deformation: bevy_deformable_sq::model::deform::GlobalDeformation {
+            taper: [odd[0], -1.0 / 3.0],
+            bend: [1e-300, -0.0],
+        },
         displacement,
     };
     def.set_state(0, &state, true);
@@ -187,6 +191,10 @@ fn a_saved_scene_parses_back_to_the_same_state_bit_for_bit() {
     assert_eq!(
         loaded.shape.to_array().map(f64::to_bits),
         state.shape.to_array().map(f64::to_bits)
+    );
+    assert_eq!(
+        loaded.deformation.to_array().map(f64::to_bits),
+        state.deformation.to_array().map(f64::to_bits)
     );
     let bits = |d: &[DVec3]| -> Vec<[u64; 3]> {
         d.iter().map(|v| v.to_array().map(f64::to_bits)).collect()
@@ -315,6 +323,44 @@ fn an_outlier_fraction_of_one_or_more_is_refused_and_a_valid_one_reaches_the_fit
 fn k_below_3_is_refused_with_the_field() {
     let e = parse_err(&scene_text(&GOOD_PART.replace("k: 5", "k: 2"), PTS));
     assert_names(&e, Some("parts[0].k"), None, "found 2");
+}
+
+#[test]
+fn tapering_and_bending_are_read_freed_and_bounded() {
+    let part = GOOD_PART.replace(
+        "k: 5,",
+        "k: 5, deformation: (taper: (0.25, -0.5), bend: (0.3, 0.0)), free: (taper: true, bend: true),",
+    );
+    let def = SceneDef::parse(&scene_text(&part, PTS), Path::new("good.dsq.ron")).unwrap();
+    let p = &def.parts[0];
+    assert_eq!(p.deformation.taper, [0.25, -0.5]);
+    assert_eq!(p.deformation.bend, [0.3, 0.0]);
+    let free = p.dynamics().free;
+    assert!(free.taper && free.bend);
+    // Written back only when set.
+    assert!(def.to_ron().unwrap().contains("taper"));
+    let plain = SceneDef::parse(&scene_text(GOOD_PART, PTS), Path::new("good.dsq.ron")).unwrap();
+    assert!(!plain.to_ron().unwrap().contains("taper"));
+    assert!(!plain.parts[0].dynamics().free.taper);
+    // Out of bounds: a taper beyond 1, a bend past the centre of curvature of a unit sphere
+    // (|b| ≤ 0.9 × 1 / 1), a non-finite bend.
+    for (deformation, field, what) in [
+        (
+            "(taper: (1.5, 0.0))",
+            "parts[0].deformation.taper",
+            "[-1, 1]",
+        ),
+        (
+            "(bend: (0.0, 1.2))",
+            "parts[0].deformation.bend",
+            "beyond its bound 0.9",
+        ),
+        ("(bend: (inf, 0.0))", "parts[0].deformation.bend", "finite"),
+    ] {
+        let part = GOOD_PART.replace("k: 5,", &format!("k: 5, deformation: {deformation},"));
+        let e = parse_err(&scene_text(&part, PTS));
+        assert_names(&e, Some(field), None, what);
+    }
 }
 
 #[test]
@@ -786,10 +832,17 @@ fn a_model_added_under_the_root_is_saved_as_a_new_part() {
         a3: 0.25,
         e1: 0.3,
         e2: 1.9,
+        taper: [0.1, -0.2],
+        bend: [0.15, -0.05],
     };
     app.world_mut().spawn((
         Name::new("placed"),
         shape,
+        ModelSettings {
+            taper: true,
+            bend: true,
+            ..Default::default()
+        },
         rigid,
         FemMesh::new(7),
         ChildOf(root),
@@ -803,6 +856,7 @@ fn a_model_added_under_the_root_is_saved_as_a_new_part() {
     assert_eq!(def.parts[1].name, "placed");
     assert_eq!(def.parts[1].k, 7);
     assert_eq!(def.parts[1].forces, bevy_deformable_sq::scene::Forces::Free);
+    assert!(def.parts[1].free.taper && def.parts[1].free.bend);
     let mut again = scene_app(&dir);
     let root2 = load(&mut again, "more.dsq.ron");
     let e = parts(&again, root2)[1];

@@ -42,14 +42,18 @@
 //! The global update is limited to a trust region (a quarter of the model size, a quarter radian,
 //! a quarter of each aspect and exponent per step).
 
+use super::deform::{GlobalDeformation, NUM_DEFORM};
 use super::fem::{ElementPoint, GridPowers, Tessellation};
 use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
 use super::linalg::cholesky_solve;
 use super::superquadric::{NUM_SHAPE, SuperquadricParams};
 use bevy::math::{DMat3, DQuat, DVec3};
 
-/// Number of global degrees of freedom: q_c (3) + q_θ (4) + q_s (6).
-pub const NUM_GLOBAL: usize = 13;
+/// Number of global degrees of freedom: q_c (3) + q_θ (4) + q_s (6) + q_T (4, tapering and
+/// bending: [`super::deform`], frozen unless [`FreeDofs::taper`] / [`FreeDofs::bend`]).
+pub const NUM_GLOBAL: usize = 13 + NUM_DEFORM;
+/// Index of the first deformation coordinate q_T in the global vector.
+const DEFORM_START: usize = 7 + NUM_SHAPE;
 /// Most local sub-steps one [`step`] takes before it clamps Δt.
 pub const MAX_SUBSTEPS: u32 = 64;
 
@@ -62,6 +66,9 @@ pub struct ModelState {
     pub rotation: DQuat,
     /// q_s: the global deformation parameters.
     pub shape: SuperquadricParams,
+    /// q_T: tapering and bending applied to the superquadric before the local displacement
+    /// ([`super::deform`]); the identity for the paper's model.
+    pub deformation: GlobalDeformation,
     /// q_d: the local displacement d_i of every node, in the model frame.
     pub displacement: Vec<DVec3>,
 }
@@ -78,6 +85,7 @@ impl ModelState {
             translation,
             rotation,
             shape,
+            deformation: GlobalDeformation::IDENTITY,
             displacement: vec![DVec3::ZERO; tess.node_count()],
         }
     }
@@ -87,6 +95,7 @@ impl ModelState {
         self.translation.is_finite()
             && self.rotation.is_finite()
             && self.shape.is_finite()
+            && self.deformation.is_finite()
             && self.displacement.iter().all(|d| d.is_finite())
     }
 
@@ -97,19 +106,22 @@ impl ModelState {
             self.translation,
             self.rotation,
             &self.shape,
+            &self.deformation,
             &self.displacement,
             out,
         );
     }
 }
 
-/// World positions x_i = c + R (s_i + d_i) of every node (eqs. 2, 3) from the parts of a state.
-/// Displacements missing at the end of `displacement` count as zero.
+/// World positions x_i = c + R (T(s_i) + d_i) of every node (eqs. 2, 3, with the global
+/// deformation T of [`super::deform`]) from the parts of a state. Displacements missing at the
+/// end of `displacement` count as zero.
 pub fn node_positions(
     tess: &Tessellation,
     translation: DVec3,
     rotation: DQuat,
     shape_q: &SuperquadricParams,
+    deformation: &GlobalDeformation,
     displacement: &[DVec3],
     out: &mut Vec<DVec3>,
 ) {
@@ -118,18 +130,20 @@ pub fn node_positions(
     for_each_model_point(
         tess,
         shape_q,
+        deformation,
         &mut GridPowers::default(),
         displacement,
         |_, p| out.push(translation + r * p),
     );
 }
 
-/// Calls `visit(i, p_i)` with the model-frame point p_i = s_i + d_i of every node in index order,
-/// computing the signed powers once per ring and longitude into `grid`. Displacements missing at
-/// the end of `displacement` count as zero.
+/// Calls `visit(i, p_i)` with the model-frame point p_i = T(s_i) + d_i of every node in index
+/// order, computing the signed powers once per ring and longitude into `grid`. Displacements
+/// missing at the end of `displacement` count as zero.
 fn for_each_model_point(
     tess: &Tessellation,
     q: &SuperquadricParams,
+    deformation: &GlobalDeformation,
     grid: &mut GridPowers,
     displacement: &[DVec3],
     mut visit: impl FnMut(usize, DVec3),
@@ -137,11 +151,18 @@ fn for_each_model_point(
     tess.grid_powers(q, grid);
     let axes = q.semi_axes();
     let grid = &*grid;
+    let deformed = !deformation.is_identity();
     tess.for_each_grid_node(|i, ring, lon| {
         let [cu, su] = grid.rings[ring];
         let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
         let d = displacement.get(i).copied().unwrap_or_default();
-        visit(i, axes * DVec3::new(cu * cv, cu * sv, su) + d);
+        let s = axes * DVec3::new(cu * cv, cu * sv, su);
+        let s = if deformed {
+            deformation.apply(s, axes.z)
+        } else {
+            s
+        };
+        visit(i, s + d);
     });
 }
 
@@ -233,6 +254,12 @@ pub struct FreeDofs {
     /// depth c_z and the out-of-plane turns are held (a monocular image does not observe them).
     #[serde(default)]
     pub planar: bool,
+    /// The tapering coordinates (t_x, t_y) of [`super::deform`] move (beyond the paper).
+    #[serde(default)]
+    pub taper: bool,
+    /// The bending coordinates (b_x, b_y) of [`super::deform`] move (beyond the paper).
+    #[serde(default)]
+    pub bend: bool,
 }
 
 impl Default for FreeDofs {
@@ -243,6 +270,8 @@ impl Default for FreeDofs {
             shape: [true; NUM_SHAPE],
             local: true,
             planar: false,
+            taper: false,
+            bend: false,
         }
     }
 }
@@ -362,6 +391,7 @@ impl Workspace {
         for_each_model_point(
             tess,
             &state.shape,
+            &state.deformation,
             &mut self.grid,
             &state.displacement,
             |_, p| {
@@ -396,7 +426,7 @@ pub fn generalized_global_forces(
 ) -> [f64; NUM_GLOBAL] {
     let mut ws = Workspace::default();
     ws.prepare(tess, state);
-    global_system(tess, state, &ws, forces).1
+    global_system_general(tess, state, &ws, forces).1
 }
 
 /// f_d,i = Sᵀ Rᵀ f: for nodal basis functions the local generalized force is RᵀF_i (eq. 33).
@@ -455,11 +485,142 @@ fn dot3(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// The stiffness-weighted Gram matrix Σ κ_i L_iᵀ L_i (plus the point-to-plane terms), the
+/// generalized forces Σ L_iᵀ F_i and the total stiffness weight: through the superquadric's
+/// moments ([`global_system_superquadric`]) when the model is a plain superquadric whose
+/// tapering and bending are held, and column by column ([`global_system_general`]) otherwise.
+fn global_system(
+    tess: &Tessellation,
+    state: &ModelState,
+    ws: &Workspace,
+    forces: &NodalForces,
+    free: &FreeDofs,
+) -> ([[f64; NUM_GLOBAL]; NUM_GLOBAL], [f64; NUM_GLOBAL], f64) {
+    if state.deformation.is_identity() && !free.taper && !free.bend {
+        global_system_superquadric(tess, state, ws, forces)
+    } else {
+        global_system_general(tess, state, ws, forces)
+    }
+}
+
+/// [`global_system`] for any T: each node's 14 model-frame columns of L (rotation, q_s, q_T) are
+/// built explicitly, L_iᵀ L_i summed from them (about 700 flops a node, 4–5 times the moments).
+/// Model-frame columns: G_j × p for q_θ (so that R times it is B's column, eq. 17), and
+/// ∂T/∂s J_b + ∂T/∂A ∂A/∂q_b for q_s (A = a·a3), ∂T/∂q_T for q_T; the translation columns are
+/// the world axes.
+fn global_system_general(
+    tess: &Tessellation,
+    state: &ModelState,
+    ws: &Workspace,
+    forces: &NodalForces,
+) -> ([[f64; NUM_GLOBAL]; NUM_GLOBAL], [f64; NUM_GLOBAL], f64) {
+    const M: usize = NUM_GLOBAL - 3;
+    let (points, grid) = (&ws.points, &ws.grid);
+    let r = rotation_matrix(state.rotation);
+    let rt = r.transpose();
+    let g = g_matrix(state.rotation);
+    let q = &state.shape;
+    let alpha = jacobian_coefficients(q);
+    let axes = q.semi_axes();
+    // ∂A/∂q_s for A = a·a3.
+    let mut d_height = [0.0; NUM_SHAPE];
+    d_height[0] = q.a3;
+    d_height[3] = q.a;
+    let plane = forces.plane_stiffness.len() == forces.force.len();
+    let mut gram = [[0.0; M]; M]; // Σ κ colᵀcol + Σ ρ (col·m)(col·m), upper triangle
+    let mut k_col = [DVec3::ZERO; M]; // Σ κ col (model frame)
+    let mut rho_n_col = [DVec3::ZERO; M]; // Σ ρ n (col·m) (world n)
+    let mut rho_nn = DMat3::ZERO; // Σ ρ n nᵀ
+    let mut f_model = [0.0; M];
+    let mut f_c = DVec3::ZERO;
+    let (mut kappa_sum, mut plane_sum) = (0.0, 0.0);
+    tess.for_each_grid_node(|i, ring, lon| {
+        let f = forces.force[i] + forces.shape_force[i];
+        let kappa = forces.stiffness[i] + forces.shape_stiffness[i];
+        let rho = if plane {
+            forces.plane_stiffness[i]
+        } else {
+            0.0
+        };
+        if kappa == 0.0 && rho == 0.0 && f == DVec3::ZERO {
+            return;
+        }
+        let p = points[i];
+        let [cu, su] = grid.rings[ring];
+        let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
+        let base = [cu * cv, cu * sv, su];
+        let ([ln_cu, ln_su], [ln_cv, ln_sv]) = tess.grid_logs(ring, lon);
+        let phi = [[1.0, ln_cu, ln_cv], [1.0, ln_cu, ln_sv], [1.0, ln_su, 0.0]];
+        let s = axes * DVec3::from_array(base);
+        let t = state.deformation.jacobian(s, axes.z);
+        let mut cols = [DVec3::ZERO; M];
+        for j in 0..4 {
+            cols[j] = g[j].cross(p);
+        }
+        for b in 0..NUM_SHAPE {
+            let jb = DVec3::new(
+                base[0] * dot3(&alpha[0][b], &phi[0]),
+                base[1] * dot3(&alpha[1][b], &phi[1]),
+                base[2] * dot3(&alpha[2][b], &phi[2]),
+            );
+            cols[4 + b] = t.d_point * jb + d_height[b] * t.d_height;
+        }
+        cols[4 + NUM_SHAPE..].copy_from_slice(&t.d_params);
+        let fm = rt * f;
+        f_c += f;
+        for (fa, col) in f_model.iter_mut().zip(&cols) {
+            *fa += col.dot(fm);
+        }
+        let n = if rho != 0.0 {
+            forces.plane_normal[i]
+        } else {
+            DVec3::ZERO
+        };
+        let m = rt * n;
+        let along: [f64; M] = std::array::from_fn(|a| cols[a].dot(m));
+        for a in 0..M {
+            k_col[a] += kappa * cols[a];
+            rho_n_col[a] += rho * along[a] * n;
+            for b in a..M {
+                gram[a][b] += kappa * cols[a].dot(cols[b]) + rho * along[a] * along[b];
+            }
+        }
+        rho_nn += rho * DMat3::from_cols(n.x * n, n.y * n, n.z * n);
+        kappa_sum += kappa;
+        plane_sum += rho;
+    });
+    let mut c = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
+    for k in 0..3 {
+        for l in 0..3 {
+            c[k][l] = rho_nn.col(l)[k] + if k == l { kappa_sum } else { 0.0 };
+        }
+    }
+    for a in 0..M {
+        // c–(θ, s, T): e_kᵀ (Σ κ R col + Σ ρ n (col·m)).
+        let col = r * k_col[a] + rho_n_col[a];
+        for k in 0..3 {
+            c[k][3 + a] = col[k];
+        }
+        for b in a..M {
+            c[3 + a][3 + b] = gram[a][b];
+        }
+    }
+    for i in 0..NUM_GLOBAL {
+        for j in 0..i {
+            c[i][j] = c[j][i];
+        }
+    }
+    let mut f = [0.0; NUM_GLOBAL];
+    f[..3].copy_from_slice(&f_c.to_array());
+    f[3..].copy_from_slice(&f_model);
+    (c, f, kappa_sum + plane_sum)
+}
+
 /// Accumulates the stiffness-weighted Gram matrix Σ κ_i L_iᵀ L_i and the generalized forces
-/// Σ L_iᵀ F_i, using the block structure of L = [I, −R p̃ G, R J] and the per-component structure
+/// Σ L_iᵀ F_i of a plain superquadric (q_T = 0), using the block structure of L = [I, −R p̃ G, R J] and the per-component structure
 /// of J ([`jacobian_coefficients`]): each node adds to ~70 moments (about 130 flops), and the
 /// 13 × 13 system is assembled from them once.
-fn global_system(
+fn global_system_superquadric(
     tess: &Tessellation,
     state: &ModelState,
     ws: &Workspace,
@@ -520,9 +681,9 @@ fn global_system(
                     .map(|c| base[c] * ma[c] * dot3(&alpha[c][b], &phi[c]))
                     .sum();
             }
-            for a in 0..NUM_GLOBAL {
+            for a in 0..DEFORM_START {
                 let ra = rho * gv[a];
-                for b in a..NUM_GLOBAL {
+                for b in a..DEFORM_START {
                     plane_gram[a][b] += ra * gv[b];
                 }
             }
@@ -661,23 +822,11 @@ fn global_increment(
     forces: &NodalForces,
     params: &DynamicsParams,
 ) -> Result<[f64; NUM_GLOBAL], StepError> {
-    let (mut c, mut f, kappa_sum) = global_system(tess, state, ws, forces);
+    let (mut c, mut f, kappa_sum) = global_system(tess, state, ws, forces, &params.free);
     let ell = state.shape.a.max(1e-12);
-    let scale = [
-        1.0,
-        1.0,
-        1.0,
-        ell * ell,
-        ell * ell,
-        ell * ell,
-        ell * ell,
-        1.0,
-        ell * ell,
-        ell * ell,
-        ell * ell,
-        ell * ell,
-        ell * ell,
-    ];
+    // Units of each column of L, squared: lengths (ℓ²) except for c and a (dimensionless).
+    let scale: [f64; NUM_GLOBAL] =
+        std::array::from_fn(|i| if i < 3 || i == 7 { 1.0 } else { ell * ell });
     let weight = kappa_sum
         .max(f.iter().map(|x| x.abs()).fold(0.0, f64::max) / ell)
         .max(1e-300);
@@ -697,7 +846,9 @@ fn global_increment(
             2 => free.translation && !free.planar,
             3 => free.rotation,
             4..=6 => free.rotation && !free.planar,
-            _ => free.shape[i - 7],
+            7..DEFORM_START => free.shape[i - 7],
+            _ if i < DEFORM_START + 2 => free.taper,
+            _ => free.bend,
         };
         if !is_free {
             for j in 0..NUM_GLOBAL {
@@ -784,6 +935,7 @@ fn limit_global(delta: &mut [f64; NUM_GLOBAL], state: &ModelState) -> bool {
     let dc = DVec3::new(delta[0], delta[1], delta[2]).length() / ell;
     let dq = delta[3..7].iter().map(|x| x * x).sum::<f64>().sqrt() * 2.0; // ≈ rotation angle
     let da = (delta[7] / ell).abs();
+    // Aspects and exponents, and the dimensionless taper and bend (radians) alike.
     let rest = delta[8..].iter().fold(0.0_f64, |m, x| m.max(x.abs()));
     let worst = dc.max(dq).max(da).max(rest);
     if worst > TRUST {
@@ -903,11 +1055,18 @@ pub fn step_prepared(
         return Err(StepError::NonFinite("rotation quaternion"));
     }
     let shape_q = state.shape.to_array();
+    let shape = SuperquadricParams::from_array(std::array::from_fn(|j| shape_q[j] + delta[7 + j]))
+        .normalized();
+    let deform_q = state.deformation.to_array();
+    let deformation = GlobalDeformation::from_array(std::array::from_fn(|j| {
+        deform_q[j] + delta[DEFORM_START + j]
+    }))
+    .clamped(shape.semi_axes());
     let new = ModelState {
         translation: state.translation + DVec3::new(delta[0], delta[1], delta[2]),
         rotation: rotation.normalize(),
-        shape: SuperquadricParams::from_array(std::array::from_fn(|j| shape_q[j] + delta[7 + j]))
-            .normalized(),
+        shape,
+        deformation,
         displacement: std::mem::take(&mut ws.new_d),
     };
     if !new.is_finite() {
@@ -950,6 +1109,17 @@ mod tests {
         s
     }
 
+    /// [`test_state`] tapered and bent.
+    fn deformed_state(tess: &Tessellation) -> ModelState {
+        ModelState {
+            deformation: GlobalDeformation {
+                taper: [0.3, -0.2],
+                bend: [0.4, 0.25],
+            },
+            ..test_state(tess)
+        }
+    }
+
     fn test_forces(tess: &Tessellation) -> NodalForces {
         let mut f = NodalForces::new(tess.node_count());
         for (i, at) in [
@@ -982,35 +1152,44 @@ mod tests {
 
     #[test]
     fn global_generalized_forces_match_central_differences() {
+        // Every global DOF, tapering and bending included, for the plain superquadric (at q_T = 0)
+        // and a tapered, bent one.
         let tess = Tessellation::new(6);
-        let state = test_state(&tess);
         let forces = test_forces(&tess);
-        let fq = generalized_global_forces(&tess, &state, &forces);
-        let h = 1e-6;
-        for j in 0..NUM_GLOBAL {
-            let perturbed = |sign: f64| {
-                let mut s = state.clone();
-                match j {
-                    0..=2 => s.translation[j] += sign * h,
-                    3..=6 => {
-                        let mut q = quat_to_paper(s.rotation);
-                        q[j - 3] += sign * h;
-                        s.rotation = quat_from_paper(q).normalize();
+        for state in [test_state(&tess), deformed_state(&tess)] {
+            let fq = generalized_global_forces(&tess, &state, &forces);
+            let h = 1e-6;
+            for j in 0..NUM_GLOBAL {
+                let perturbed = |sign: f64| {
+                    let mut s = state.clone();
+                    match j {
+                        0..=2 => s.translation[j] += sign * h,
+                        3..=6 => {
+                            let mut q = quat_to_paper(s.rotation);
+                            q[j - 3] += sign * h;
+                            s.rotation = quat_from_paper(q).normalize();
+                        }
+                        7..DEFORM_START => {
+                            let mut a = s.shape.to_array();
+                            a[j - 7] += sign * h;
+                            s.shape = SuperquadricParams::from_array(a);
+                        }
+                        _ => {
+                            let mut t = s.deformation.to_array();
+                            t[j - DEFORM_START] += sign * h;
+                            s.deformation = GlobalDeformation::from_array(t);
+                        }
                     }
-                    _ => {
-                        let mut a = s.shape.to_array();
-                        a[j - 7] += sign * h;
-                        s.shape = SuperquadricParams::from_array(a);
-                    }
-                }
-                potential(&tess, &s, &forces)
-            };
-            let fd = -(perturbed(1.0) - perturbed(-1.0)) / (2.0 * h);
-            assert!(
-                (fd - fq[j]).abs() < 1e-6 * (1.0 + fd.abs()),
-                "dof {j}: f_q {} vs fd {fd}",
-                fq[j]
-            );
+                    potential(&tess, &s, &forces)
+                };
+                let fd = -(perturbed(1.0) - perturbed(-1.0)) / (2.0 * h);
+                assert!(
+                    (fd - fq[j]).abs() < 1e-6 * (1.0 + fd.abs()),
+                    "dof {j} at {:?}: f_q {} vs fd {fd}",
+                    state.deformation,
+                    fq[j]
+                );
+            }
         }
     }
 
@@ -1059,15 +1238,57 @@ mod tests {
         }
     }
 
+    /// Σ κ L_iᵀ L_i + Σ ρ (L_iᵀ n_i)(L_iᵀ n_i)ᵀ and Σ L_iᵀ F_i built from explicit world columns
+    /// L_i = [I, B_i, R (∂T/∂s J + ∂T/∂A ∂A/∂q_s), R ∂T/∂q_T].
+    fn explicit_system(
+        tess: &Tessellation,
+        state: &ModelState,
+        forces: &NodalForces,
+    ) -> ([[f64; NUM_GLOBAL]; NUM_GLOBAL], [f64; NUM_GLOBAL]) {
+        let mut ws = Workspace::default();
+        ws.prepare(tess, state);
+        let r = rotation_matrix(state.rotation);
+        let q = &state.shape;
+        let axes = q.semi_axes();
+        let mut gram = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
+        let mut f = [0.0; NUM_GLOBAL];
+        for i in 0..tess.node_count() {
+            let b = crate::model::frame::b_matrix(&r, state.rotation, ws.points[i]);
+            let jac = jacobian(q, &tess.trig[i]);
+            let s = crate::model::superquadric::shape(q, &tess.trig[i]);
+            let t = state.deformation.jacobian(s, axes.z);
+            let d_height = [q.a3, 0.0, 0.0, q.a, 0.0, 0.0];
+            let cols: Vec<DVec3> = [DVec3::X, DVec3::Y, DVec3::Z]
+                .into_iter()
+                .chain(b)
+                .chain((0..NUM_SHAPE).map(|k| r * (t.d_point * jac[k] + d_height[k] * t.d_height)))
+                .chain(t.d_params.iter().map(|c| r * *c))
+                .collect();
+            let n = forces.plane_normal[i];
+            let force = forces.force[i] + forces.shape_force[i];
+            let kappa = forces.stiffness[i] + forces.shape_stiffness[i];
+            for a in 0..NUM_GLOBAL {
+                f[a] += cols[a].dot(force);
+                for bb in 0..NUM_GLOBAL {
+                    gram[a][bb] += kappa * cols[a].dot(cols[bb])
+                        + forces.plane_stiffness[i] * cols[a].dot(n) * cols[bb].dot(n);
+                }
+            }
+        }
+        (gram, f)
+    }
+
     #[test]
     fn gram_matrix_equals_explicit_lt_l_sum() {
-        // Σ κ L_iᵀ L_i + Σ ρ (L_iᵀ n_i)(L_iᵀ n_i)ᵀ through the block formulas and moments equals
-        // the sum built from explicit columns.
+        // The Gram matrix and forces through the superquadric's moments (plain model, q_T held)
+        // and column by column (tapered and bent, or q_T free) equal the sums built from explicit
+        // columns; the two paths agree on the plain model.
         let tess = Tessellation::new(5);
-        let state = test_state(&tess);
-        let mut forces = NodalForces::new(tess.node_count());
+        let mut forces = test_forces(&tess);
         for i in 0..tess.node_count() {
             forces.stiffness[i] = 0.1 + (i % 3) as f64;
+            forces.shape_stiffness[i] = 0.05 * (i % 2) as f64;
+            forces.shape_force[i] = DVec3::new(0.1, -0.2 * (i % 3) as f64, 0.05);
             if i % 4 == 1 {
                 // Point-to-plane springs on some nodes, with any unit normal.
                 forces.plane_stiffness[i] = 0.5 + (i % 5) as f64;
@@ -1075,34 +1296,38 @@ mod tests {
                     DVec3::new((i as f64).sin(), 0.3, (0.7 * i as f64).cos()).normalize();
             }
         }
-        let mut ws = Workspace::default();
-        ws.prepare(&tess, &state);
-        let (m, _, _) = global_system(&tess, &state, &ws, &forces);
-        let pts = ws.points.clone();
-        let r = rotation_matrix(state.rotation);
-        let mut explicit = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
-        for i in 0..tess.node_count() {
-            let b = crate::model::frame::b_matrix(&r, state.rotation, pts[i]);
-            let jac = jacobian(&state.shape, &tess.trig[i]);
-            let cols: Vec<DVec3> = [DVec3::X, DVec3::Y, DVec3::Z]
-                .into_iter()
-                .chain(b)
-                .chain(jac.iter().map(|c| r * *c))
-                .collect();
-            let n = forces.plane_normal[i];
-            for a in 0..NUM_GLOBAL {
-                for bb in 0..NUM_GLOBAL {
-                    explicit[a][bb] += forces.stiffness[i] * cols[a].dot(cols[bb])
-                        + forces.plane_stiffness[i] * cols[a].dot(n) * cols[bb].dot(n);
+        let held = FreeDofs::default();
+        let free = FreeDofs {
+            taper: true,
+            bend: true,
+            ..held
+        };
+        for (state, dofs) in [
+            (test_state(&tess), held),
+            (test_state(&tess), free),
+            (deformed_state(&tess), held),
+            (deformed_state(&tess), free),
+        ] {
+            let mut ws = Workspace::default();
+            ws.prepare(&tess, &state);
+            let (m, f, _) = global_system(&tess, &state, &ws, &forces, &dofs);
+            let (explicit, explicit_f) = explicit_system(&tess, &state, &forces);
+            // The moments path leaves the q_T rows empty: they are held.
+            let rows = if state.deformation.is_identity() && !dofs.taper {
+                DEFORM_START
+            } else {
+                NUM_GLOBAL
+            };
+            for a in 0..rows {
+                let tol = |x: f64| 1e-9 * (1.0 + x.abs());
+                assert!((f[a] - explicit_f[a]).abs() < tol(explicit_f[a]), "f {a}");
+                for b in 0..rows {
+                    assert!(
+                        (m[a][b] - explicit[a][b]).abs() < tol(explicit[a][b]),
+                        "({a},{b}) at {:?}, free {dofs:?}",
+                        state.deformation
+                    );
                 }
-            }
-        }
-        for a in 0..NUM_GLOBAL {
-            for b in 0..NUM_GLOBAL {
-                assert!(
-                    (m[a][b] - explicit[a][b]).abs() < 1e-9 * (1.0 + explicit[a][b].abs()),
-                    "({a},{b})"
-                );
             }
         }
     }
@@ -1142,6 +1367,120 @@ mod tests {
         // No external force: the global DOFs do not move.
         assert_eq!(state.translation, before.translation);
         assert_eq!(state.rotation, before.rotation);
+    }
+
+    /// Springs κ = 1 from every node to where the same node of `target` is, and their energy.
+    fn springs_to(tess: &Tessellation, state: &ModelState, target: &[DVec3]) -> (NodalForces, f64) {
+        let mut x = Vec::new();
+        state.node_positions(tess, &mut x);
+        let mut f = NodalForces::new(tess.node_count());
+        let mut energy = 0.0;
+        for i in 0..x.len() {
+            f.force[i] = target[i] - x[i];
+            f.stiffness[i] = 1.0;
+            energy += 0.5 * (target[i] - x[i]).length_squared();
+        }
+        (f, energy)
+    }
+
+    #[test]
+    fn free_taper_and_bend_recover_a_deformed_target_with_falling_energy() {
+        // Node springs to a tapered, bent copy of the model: the global step (Gauss–Newton on
+        // the springs) must bring q_T from 0 to the target's, the energy falling every step.
+        let tess = Tessellation::new(10);
+        // Elongated along z, so that the target's bend is well inside its bound.
+        let start = ModelState {
+            shape: SuperquadricParams {
+                a: 1.5,
+                a1: 0.5,
+                a2: 0.4,
+                a3: 1.0,
+                e1: 0.8,
+                e2: 1.2,
+            },
+            displacement: vec![DVec3::ZERO; tess.node_count()],
+            ..test_state(&tess)
+        };
+        let truth = ModelState {
+            deformation: GlobalDeformation {
+                taper: [0.35, -0.25],
+                bend: [0.5, 0.3],
+            },
+            ..start.clone()
+        };
+        let mut target = Vec::new();
+        truth.node_positions(&tess, &mut target);
+        let mut params = DynamicsParams::default();
+        params.free.local = false;
+        params.free.taper = true;
+        params.free.bend = true;
+        let mut state = start.clone();
+        let mut ws = Workspace::default();
+        let (_, mut energy) = springs_to(&tess, &state, &target);
+        let first = energy;
+        for _ in 0..300 {
+            let (forces, e) = springs_to(&tess, &state, &target);
+            // (Once at rounding level, the energy only wanders there.)
+            assert!(
+                e <= energy * (1.0 + 1e-9) + 1e-24 * first,
+                "energy rose: {energy} -> {e}"
+            );
+            energy = e;
+            step(&tess, &mut state, &forces, &params, &mut ws).expect("finite");
+        }
+        assert!(energy < 1e-10 * first, "energy {first} -> {energy}");
+        for (got, want) in state
+            .deformation
+            .to_array()
+            .iter()
+            .zip(truth.deformation.to_array())
+        {
+            assert!((got - want).abs() < 1e-5, "{:?}", state.deformation);
+        }
+        // Held, the same springs leave q_T at 0.
+        params.free.taper = false;
+        params.free.bend = false;
+        let mut held = start.clone();
+        for _ in 0..20 {
+            let (forces, _) = springs_to(&tess, &held, &target);
+            step(&tess, &mut held, &forces, &params, &mut ws).expect("finite");
+        }
+        assert!(held.deformation.is_identity());
+    }
+
+    #[test]
+    fn taper_and_bend_stay_within_bounds_under_any_pull() {
+        // Huge opposite pulls on the two ends, sideways: the state stays finite and q_T within
+        // its bounds (no point crosses the centre of curvature).
+        let tess = Tessellation::new(8);
+        let mut state = ModelState {
+            displacement: vec![DVec3::ZERO; tess.node_count()],
+            ..test_state(&tess)
+        };
+        let mut params = DynamicsParams::default();
+        params.free.taper = true;
+        params.free.bend = true;
+        let mut ws = Workspace::default();
+        for k in 0..200 {
+            let mut x = Vec::new();
+            state.node_positions(&tess, &mut x);
+            let mut forces = NodalForces::new(tess.node_count());
+            let axis = rotation_matrix(state.rotation) * DVec3::Z;
+            let side = rotation_matrix(state.rotation) * DVec3::X;
+            for i in 0..x.len() {
+                let along = (x[i] - state.translation).dot(axis);
+                forces.force[i] =
+                    1e4 * along.signum() * side * if k % 50 < 25 { 1.0 } else { -3.0 };
+                forces.stiffness[i] = 1.0;
+            }
+            step(&tess, &mut state, &forces, &params, &mut ws).expect("finite");
+            assert!(state.is_finite());
+            assert_eq!(
+                state.deformation,
+                state.deformation.clamped(state.shape.semi_axes())
+            );
+        }
+        assert!(!state.deformation.is_identity());
     }
 
     #[test]

@@ -328,6 +328,8 @@ impl Normalization {
             translation: self.centroid + s.translation * self.scale,
             rotation: s.rotation,
             shape,
+            // Tapering and bending are dimensionless: the same at any scale.
+            deformation: s.deformation,
             displacement: s.displacement.iter().map(|d| *d * self.scale).collect(),
         }
     }

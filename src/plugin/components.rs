@@ -6,6 +6,7 @@
 //! [`FemMesh`]. Every one of them may be changed from outside (an inspector); the next step reads
 //! them as they are.
 
+use crate::model::deform::GlobalDeformation;
 use crate::model::dynamics::{DynamicsParams, FreeDofs, ModelState, NodalForces, Workspace};
 use crate::model::fem::Tessellation;
 use crate::model::fit::{FitOptions, Stage, StageClock};
@@ -15,7 +16,8 @@ use bevy::math::{DQuat, DVec3};
 use bevy::prelude::*;
 use std::sync::Arc;
 
-/// The global deformation parameters q_s = (a, a1, a2, a3, ε1, ε2) of eq. (5).
+/// The global deformation parameters q_s = (a, a1, a2, a3, ε1, ε2) of eq. (5), and the tapering
+/// and bending q_T of [`crate::model::deform`] (zero for the paper's model).
 #[derive(Component, Reflect, Clone, Copy, Debug, PartialEq)]
 #[reflect(Component, Default, Debug, PartialEq)]
 #[cfg_attr(feature = "serialize", derive(serde::Serialize, serde::Deserialize))]
@@ -33,6 +35,31 @@ pub struct GlobalShape {
     pub e1: f64,
     /// Squareness ε2 (longitude cross-section).
     pub e2: f64,
+    /// Tapering (t_x, t_y) along z, each in [−1, 1] ([`GlobalDeformation::taper`]).
+    #[cfg_attr(feature = "serialize", serde(default))]
+    pub taper: [f64; 2],
+    /// Bending (b_x, b_y): direction and angle of each end, radians ([`GlobalDeformation::bend`]).
+    #[cfg_attr(feature = "serialize", serde(default))]
+    pub bend: [f64; 2],
+}
+
+impl GlobalShape {
+    /// The shape q_s with the tapering and bending q_T.
+    pub fn new(shape: SuperquadricParams, deformation: GlobalDeformation) -> Self {
+        Self {
+            taper: deformation.taper,
+            bend: deformation.bend,
+            ..shape.into()
+        }
+    }
+
+    /// The tapering and bending q_T.
+    pub fn deformation(&self) -> GlobalDeformation {
+        GlobalDeformation {
+            taper: self.taper,
+            bend: self.bend,
+        }
+    }
 }
 
 impl Default for GlobalShape {
@@ -51,6 +78,8 @@ impl From<SuperquadricParams> for GlobalShape {
             a3: q.a3,
             e1: q.e1,
             e2: q.e2,
+            taper: [0.0; 2],
+            bend: [0.0; 2],
         }
     }
 }
@@ -181,6 +210,12 @@ pub struct ModelSettings {
     /// image.
     #[cfg_attr(feature = "serialize", serde(default))]
     pub planar: bool,
+    /// Let the tapering coordinates of [`GlobalShape::taper`] move (beyond the paper).
+    #[cfg_attr(feature = "serialize", serde(default))]
+    pub taper: bool,
+    /// Let the bending coordinates of [`GlobalShape::bend`] move (beyond the paper).
+    #[cfg_attr(feature = "serialize", serde(default))]
+    pub bend: bool,
 }
 
 impl Default for ModelSettings {
@@ -211,6 +246,8 @@ impl ModelSettings {
             hold_local_steps: 0,
             fix_epsilon: !(d.free.shape[4] || d.free.shape[5]),
             planar: d.free.planar,
+            taper: d.free.taper,
+            bend: d.free.bend,
         }
     }
 
@@ -229,7 +266,11 @@ impl ModelSettings {
             dt: self.dt,
             gamma_global: self.gamma_global,
             gamma_local: self.gamma_local,
-            free: FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon),
+            free: FreeDofs {
+                taper: self.taper,
+                bend: self.bend,
+                ..FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon)
+            },
             ..DynamicsParams::default()
         }
     }
@@ -470,7 +511,7 @@ impl Scratch {
     }
 }
 
-/// World node positions x_i = c + R (s_i + d_i) of a model, from its components.
+/// World node positions x_i = c + R (T(s_i) + d_i) of a model, from its components.
 pub fn world_positions(
     tess: &Tessellation,
     rigid: &RigidState,
@@ -483,6 +524,7 @@ pub fn world_positions(
         rigid.translation,
         rigid.rotation,
         &(*shape).into(),
+        &shape.deformation(),
         &local.displacement,
         out,
     );
@@ -498,6 +540,7 @@ pub(crate) fn take_state(
         translation: rigid.translation,
         rotation: rigid.rotation,
         shape: (*shape).into(),
+        deformation: shape.deformation(),
         displacement: std::mem::take(&mut local.displacement),
     }
 }
@@ -515,6 +558,6 @@ pub(crate) fn put_state(
         rotation: state.rotation,
     };
     rigid.set_if_neq(new_rigid);
-    shape.set_if_neq(state.shape.into());
+    shape.set_if_neq(GlobalShape::new(state.shape, state.deformation));
     local.displacement = state.displacement;
 }

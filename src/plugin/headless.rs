@@ -28,6 +28,7 @@ fn state_of(world: &World, e: Entity) -> Option<ModelState> {
         translation: r.translation,
         rotation: r.rotation,
         shape: (*s).into(),
+        deformation: s.deformation(),
         displacement: l.displacement.clone(),
     })
 }

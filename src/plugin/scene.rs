@@ -158,6 +158,8 @@ pub fn part_settings(part: &PartDef) -> ModelSettings {
         hold_local_steps: 0,
         fix_epsilon: part.fix_epsilon(),
         planar: part.planar(),
+        taper: part.free.taper,
+        bend: part.free.bend,
     }
 }
 
@@ -180,7 +182,7 @@ fn spawn_part(
     let mut e = commands.spawn((
         Name::new(part.name.clone()),
         ScenePart { index },
-        GlobalShape::from(state.shape),
+        GlobalShape::new(state.shape, state.deformation),
         RigidState {
             translation: state.translation,
             rotation: state.rotation,
@@ -359,10 +361,13 @@ pub fn scene_from_world(
         if s.planar != part.planar() {
             part.free.planar = Some(s.planar);
         }
+        part.free.taper = s.taper;
+        part.free.bend = s.bend;
         let state = ModelState {
             translation: rigid.translation,
             rotation: rigid.rotation,
             shape: (*shape).into(),
+            deformation: shape.deformation(),
             displacement: local.displacement.clone(),
         };
         let sized = local.displacement.len() == fem.k * fem.k + 2;
