@@ -5,7 +5,7 @@
 //!     [--nodes N | --k K] [--w0 F] [--w1 F|auto] [--beta F] [--max-steps N] [--out-mesh FILE.obj]
 //!     [--out-params FILE.json] [--quiet]
 //!     points only: [--global-only] [--plane] [--outliers F] [--refine] [--switch] [--robust]
-//!                  [--migrate] [--reassign N] [--parts N] [--app]
+//!                  [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]
 //!     images only: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth]
 //!                  [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]
 //!     scenes only: [--out-scene FILE.dsq.ron]
@@ -25,6 +25,8 @@
 //! (every initial hypothesis an entity, simulated in parallel); the result is the same. Progress goes to stderr; the last line
 //! on stdout is a one-line JSON summary. `--robust` is `--outliers 0.2 --plane --refine --switch`
 //! (`FitOptions::robust`): the most accurate pure superquadric on partial or outlier-ridden clouds.
+//! `--taper` and `--bend` free the global tapering and bending of `model::deform` (beyond the paper)
+//! for curved, tapered objects; the summary then carries `taper` and `bend`.
 //! Bad input exits with code 2 and a one-line message.
 
 use bevy::math::{DVec2, DVec3};
@@ -55,7 +57,7 @@ use std::time::Duration;
 use std::time::Instant;
 
 const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F|auto] [--beta F] \
-[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--plane] [--outliers F] [--refine] [--switch] [--robust] [--migrate] [--reassign N] [--parts N] [--app]; \
+[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--plane] [--outliers F] [--refine] [--switch] [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]; \
 images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]; scenes: [--out-scene FILE.dsq.ron]";
 
 /// Where the data come from.
@@ -213,6 +215,8 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
                 o = opts;
             }
             "--global-only" => o.global_only = true,
+            "--taper" => o.dynamics.free.taper = true,
+            "--bend" => o.dynamics.free.bend = true,
             "--plane" => o.point_to_plane = true,
             "--refine" => o.refine = true,
             "--switch" => o.switch_cross_section = true,
@@ -261,6 +265,14 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
     };
     if out_scene.is_some() && !matches!(source, Source::Scene(_)) {
         return Err(format!("--out-scene needs --scene\n{USAGE}"));
+    }
+    if (o.dynamics.free.taper || o.dynamics.free.bend)
+        && matches!(source, Source::Image(_) | Source::Scene(_))
+    {
+        return Err(
+            "--taper and --bend act on point fits; a scene part frees them with free: (taper: true, bend: true)"
+                .into(),
+        );
     }
     if stiffness_from_noise && matches!(source, Source::Image(_) | Source::Scene(_)) {
         return Err(
@@ -526,6 +538,7 @@ fn range_summary(
         "max": r.max,
         "a": shape.a, "a1": shape.a1, "a2": shape.a2, "a3": shape.a3,
         "e1": shape.e1, "e2": shape.e2,
+        "taper": report.state.deformation.taper, "bend": report.state.deformation.bend,
     })
 }
 

@@ -1,10 +1,11 @@
 //! The physics-based modelling sandbox (the paper's Fig. 1 as an app): open a scene, pull models
 //! with mouse springs, tune them in an egui inspector, and watch fits converge.
 //!
-//! `cargo run --release --example sandbox [-- SCENE] [--potential] [--wireframe] [--screenshot FILE [--exit-after-steps N]]`
+//! `cargo run --release --example sandbox [-- SCENE] [--potential] [--wireframe] [--select PART] [--screenshot FILE [--exit-after-steps N]]`
 //!
 //! SCENE is a `.dsq.ron` file under `assets/` (default `scenes/sandbox.dsq.ron`); `--potential`
-//! and `--wireframe` start with those display toggles on. Mouse: drag a
+//! and `--wireframe` start with those display toggles on; `--select` opens the inspector on the
+//! part of that name. Mouse: drag a
 //! model with the left button to pull it by a spring (drawn in red); drag empty space with the
 //! left or right button to orbit, with the middle button (or Shift + right) to pan; the wheel
 //! zooms. Keys: Space pause / run, S single step, R reset the selected part, F fit the selected
@@ -18,6 +19,7 @@ use bevy::pbr::wireframe::{Wireframe, WireframePlugin};
 use bevy::picking::mesh_picking::MeshPickingPlugin;
 use bevy::prelude::*;
 use bevy_deformable_sq::io::write_model_obj;
+use bevy_deformable_sq::model::deform::{MAX_BEND, MAX_TAPER};
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fit::{FitOptions, Stage, residuals};
 use bevy_deformable_sq::model::image_fit::ellipsoid_from_points;
@@ -52,6 +54,8 @@ struct Sandbox {
     root: Option<Entity>,
     /// Points picked so far while placing a new part (`None`: not placing).
     placing: Option<Vec<Vec3>>,
+    /// The part to select once it appears (`--select NAME`).
+    select: Option<String>,
 }
 
 /// Work the inspector asks for that needs the whole world.
@@ -126,6 +130,10 @@ fn main() {
         pending: Some(Action::Open(scene)),
         root: None,
         placing: None,
+        select: args
+            .iter()
+            .position(|a| a == "--select")
+            .and_then(|i| args.get(i + 1).cloned()),
     })
     .insert_resource(Orbit {
         target: Vec3::new(0.0, 0.5, 0.0),
@@ -242,6 +250,7 @@ fn export_selected(world: &mut World) -> String {
         translation: r.translation,
         rotation: r.rotation,
         shape: (*s).into(),
+        deformation: s.deformation(),
         displacement: l.displacement.clone(),
     };
     let name = world
@@ -846,6 +855,9 @@ fn inspector(
             for i in &instances {
                 for &e in &i.parts {
                     let name = names.get(e).map(|n| n.to_string()).unwrap_or_default();
+                    if sandbox.selected.is_none() && sandbox.select.as_ref() == Some(&name) {
+                        sandbox.selected = Some(e);
+                    }
                     if ui
                         .selectable_label(sandbox.selected == Some(e), name)
                         .clicked()
@@ -868,6 +880,12 @@ fn inspector(
             ui.add(egui::Slider::new(&mut g.a3, 0.05..=1.0).text("a3"));
             ui.add(egui::Slider::new(&mut g.e1, 0.1..=2.0).text("ε1"));
             ui.add(egui::Slider::new(&mut g.e2, 0.1..=2.0).text("ε2"));
+            // Tapering and bending (beyond the paper; model::deform). The step keeps them within
+            // their bounds for the shape.
+            ui.add(egui::Slider::new(&mut g.taper[0], -MAX_TAPER..=MAX_TAPER).text("taper x"));
+            ui.add(egui::Slider::new(&mut g.taper[1], -MAX_TAPER..=MAX_TAPER).text("taper y"));
+            ui.add(egui::Slider::new(&mut g.bend[0], -MAX_BEND..=MAX_BEND).text("bend x"));
+            ui.add(egui::Slider::new(&mut g.bend[1], -MAX_BEND..=MAX_BEND).text("bend y"));
             let s = &mut *settings;
             ui.add(
                 egui::Slider::new(&mut s.w0, 0.0..=0.1)
@@ -897,6 +915,10 @@ fn inspector(
             ui.add(egui::Slider::new(&mut s.reassign_every, 1..=1000).text("reassign every"));
             ui.checkbox(&mut s.global_only, "global only");
             ui.checkbox(&mut s.fix_epsilon, "fix ε");
+            ui.horizontal(|ui| {
+                ui.checkbox(&mut s.taper, "free taper");
+                ui.checkbox(&mut s.bend, "free bend");
+            });
             ui.horizontal(|ui| {
                 if ui.button("Reset").clicked() {
                     control.reset_requested = true;

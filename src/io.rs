@@ -320,6 +320,10 @@ pub struct FittedParams {
     /// The global shape (a in data units), flattened into the JSON object.
     #[serde(flatten)]
     pub shape: SuperquadricParams,
+    /// Tapering (t_x, t_y) of [`crate::model::deform`] (0 unless freed).
+    pub taper: [f64; 2],
+    /// Bending (b_x, b_y) of [`crate::model::deform`] (0 unless freed).
+    pub bend: [f64; 2],
     /// Node count k² + 2.
     pub nodes: usize,
     /// Rings and longitudes k.
@@ -343,6 +347,8 @@ impl FittedParams {
             translation: s.translation.to_array(),
             rotation: crate::model::frame::quat_to_paper(s.rotation),
             shape: s.shape,
+            taper: s.deformation.taper,
+            bend: s.deformation.bend,
             nodes: r.tess.node_count(),
             k: r.tess.k,
             local_rms: (s

@@ -110,6 +110,9 @@ pub enum Generated {
     Egg,
     /// [`crate::synthetic::mug`]: the paper's mug, 651 points.
     Mug,
+    /// [`crate::synthetic::Banana::default`]: a curved, tapered tube, 2000 points with noise 0.002
+    /// (seed 7), in its model frame (the arc bends towards +x, thicker towards +z).
+    Banana,
 }
 
 /// A rigid placement with uniform scale.
@@ -1217,6 +1220,9 @@ impl SceneData {
                     let pts = match g {
                         Generated::Egg => crate::synthetic::egg(),
                         Generated::Mug => crate::synthetic::mug(),
+                        Generated::Banana => {
+                            crate::synthetic::Banana::default().points(2000, 0.002, 7)
+                        }
                     };
                     out.points.insert(name.clone(), Arc::new(pts));
                 }

@@ -43,13 +43,19 @@ fn taper_and_bend_fit_a_banana_that_a_superquadric_cannot() {
     let bend = d.bend[0].hypot(d.bend[1]);
     assert!((bend - 0.6).abs() < 0.1, "bend {d:?}");
     let towards = (r * DVec3::new(d.bend[0], d.bend[1], 0.0)).normalize();
-    assert!(towards.dot(turn * DVec3::X) > 0.95, "bends towards {towards}");
+    assert!(
+        towards.dot(turn * DVec3::X) > 0.95,
+        "bends towards {towards}"
+    );
     for t in d.taper {
         assert!((t.abs() - 0.4).abs() < 0.1, "taper {d:?}");
     }
     // Thicker towards the banana's +z end: sign(t) × the model's z axis.
     let thick_end = d.taper[0].signum() * (r * DVec3::Z);
-    assert!(thick_end.dot(turn * DVec3::Z) > 0.9, "thick end {thick_end}");
+    assert!(
+        thick_end.dot(turn * DVec3::Z) > 0.9,
+        "thick end {thick_end}"
+    );
     assert_eq!(d.taper[0].signum(), d.taper[1].signum());
     // Round sections of radius ≈ 0.4: semi-axes x, y within 15 %.
     let axes = both.state.shape.semi_axes();

@@ -121,8 +121,7 @@ impl GlobalDeformation {
             return DVec3::new(q[0], q[1], s.z);
         }
         let big_x = (bx * bx + by * by) * zeta * zeta;
-        let (c, _) = arc_c(big_x);
-        let (sv, _) = arc_s(big_x);
+        let [(c, _), (sv, _)] = arc(big_x);
         let m = 1.0 - (bx * q[0] + by * q[1]) / height;
         let lift = m * height * zeta * zeta * c;
         DVec3::new(q[0] + lift * bx, q[1] + lift * by, m * s.z * sv)
@@ -139,8 +138,7 @@ impl GlobalDeformation {
         let qx = Dual::constant(1.0).add(tx.mul(zeta)).mul(x);
         let qy = Dual::constant(1.0).add(ty.mul(zeta)).mul(y);
         let big_x = bx.mul(bx).add(by.mul(by)).mul(zeta).mul(zeta);
-        let c = big_x.map(arc_c);
-        let sv = big_x.map(arc_s);
+        let [c, sv] = arc(big_x.v).map(|f| big_x.chain(f));
         let m = Dual::constant(1.0).sub(bx.mul(qx).add(by.mul(qy)).div(h));
         let lift = m.mul(h).mul(zeta).mul(zeta).mul(c);
         let out = [qx.add(lift.mul(bx)), qy.add(lift.mul(by)), m.mul(z).mul(sv)];
@@ -154,31 +152,28 @@ impl GlobalDeformation {
     }
 }
 
-/// C(X) = (1 − cos √X) / X and dC/dX (series near 0, where the closed form cancels).
-fn arc_c(x: f64) -> (f64, f64) {
+/// [C(X), S(X)] with their derivatives, each as (value, d/dX): C(X) = (1 − cos √X) / X and
+/// S(X) = sin √X / √X, by their series near 0 (where the closed forms cancel).
+fn arc(x: f64) -> [(f64, f64); 2] {
     if x.abs() < 1e-2 {
-        (
-            0.5 - x / 24.0 + x * x / 720.0 - x * x * x / 40320.0 + x * x * x * x / 3628800.0,
-            -1.0 / 24.0 + x / 360.0 - x * x / 13440.0 + x * x * x / 907200.0,
-        )
+        let (x2, x3) = (x * x, x * x * x);
+        [
+            (
+                0.5 - x / 24.0 + x2 / 720.0 - x3 / 40320.0 + x2 * x2 / 3628800.0,
+                -1.0 / 24.0 + x / 360.0 - x2 / 13440.0 + x3 / 907200.0,
+            ),
+            (
+                1.0 - x / 6.0 + x2 / 120.0 - x3 / 5040.0 + x2 * x2 / 362880.0,
+                -1.0 / 6.0 + x / 60.0 - x2 / 1680.0 + x3 / 90720.0,
+            ),
+        ]
     } else {
         let r = x.sqrt();
         let (s, c) = r.sin_cos();
-        ((1.0 - c) / x, s / (2.0 * r * r * r) - (1.0 - c) / (x * x))
-    }
-}
-
-/// S(X) = sin √X / √X and dS/dX (series near 0).
-fn arc_s(x: f64) -> (f64, f64) {
-    if x.abs() < 1e-2 {
-        (
-            1.0 - x / 6.0 + x * x / 120.0 - x * x * x / 5040.0 + x * x * x * x / 362880.0,
-            -1.0 / 6.0 + x / 60.0 - x * x / 1680.0 + x * x * x / 90720.0,
-        )
-    } else {
-        let r = x.sqrt();
-        let (s, c) = r.sin_cos();
-        (s / r, c / (2.0 * x) - s / (2.0 * x * r))
+        [
+            ((1.0 - c) / x, s / (2.0 * r * r * r) - (1.0 - c) / (x * x)),
+            (s / r, c / (2.0 * x) - s / (2.0 * x * r)),
+        ]
     }
 }
 
@@ -223,9 +218,8 @@ impl Dual {
             d: std::array::from_fn(|i| (self.d[i] - self.v * inv * o.d[i]) * inv),
         }
     }
-    /// f(self) for f given as (value, derivative).
-    fn map(self, f: impl Fn(f64) -> (f64, f64)) -> Self {
-        let (v, dv) = f(self.v);
+    /// f(self) for f's (value, derivative) at `self.v`.
+    fn chain(self, (v, dv): (f64, f64)) -> Self {
         Self {
             v,
             d: self.d.map(|x| dv * x),
@@ -308,14 +302,14 @@ mod tests {
     #[test]
     fn arc_functions_are_smooth_across_the_series_switch() {
         for x in [1e-2 * (1.0 - 1e-9), 1e-2 * (1.0 + 1e-9)] {
-            let (c, dc) = arc_c(x);
-            let (s, ds) = arc_s(x);
+            let [(c, dc), (s, ds)] = arc(x);
             let r = x.sqrt();
             assert!((c - (1.0 - r.cos()) / x).abs() < 1e-12);
             assert!((s - r.sin() / r).abs() < 1e-14);
             let h = 1e-7;
-            assert!((dc - (arc_c(x + h).0 - arc_c(x - h).0) / (2.0 * h)).abs() < 1e-6);
-            assert!((ds - (arc_s(x + h).0 - arc_s(x - h).0) / (2.0 * h)).abs() < 1e-6);
+            let (plus, minus) = (arc(x + h), arc(x - h));
+            assert!((dc - (plus[0].0 - minus[0].0) / (2.0 * h)).abs() < 1e-6);
+            assert!((ds - (plus[1].0 - minus[1].0) / (2.0 * h)).abs() < 1e-6);
         }
     }
 

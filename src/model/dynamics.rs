@@ -146,23 +146,41 @@ fn for_each_model_point(
     deformation: &GlobalDeformation,
     grid: &mut GridPowers,
     displacement: &[DVec3],
-    mut visit: impl FnMut(usize, DVec3),
+    visit: impl FnMut(usize, DVec3),
 ) {
     tess.grid_powers(q, grid);
     let axes = q.semi_axes();
     let grid = &*grid;
-    let deformed = !deformation.is_identity();
+    // One loop per case, so that the paper's model pays nothing for T.
+    if deformation.is_identity() {
+        visit_points(tess, grid, axes, displacement, |s| s, visit);
+    } else {
+        visit_points(
+            tess,
+            grid,
+            axes,
+            displacement,
+            |s| deformation.apply(s, axes.z),
+            visit,
+        );
+    }
+}
+
+/// The loop of [`for_each_model_point`], with the deformation `deform` applied to each s_i.
+#[inline(always)]
+fn visit_points(
+    tess: &Tessellation,
+    grid: &GridPowers,
+    axes: DVec3,
+    displacement: &[DVec3],
+    deform: impl Fn(DVec3) -> DVec3,
+    mut visit: impl FnMut(usize, DVec3),
+) {
     tess.for_each_grid_node(|i, ring, lon| {
         let [cu, su] = grid.rings[ring];
         let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
         let d = displacement.get(i).copied().unwrap_or_default();
-        let s = axes * DVec3::new(cu * cv, cu * sv, su);
-        let s = if deformed {
-            deformation.apply(s, axes.z)
-        } else {
-            s
-        };
-        visit(i, s + d);
+        visit(i, deform(axes * DVec3::new(cu * cv, cu * sv, su)) + d);
     });
 }
 
@@ -485,6 +503,62 @@ fn dot3(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// What the global system reads at a node where a force acts.
+#[derive(Clone, Copy)]
+struct ForcedNode {
+    /// Node index.
+    i: usize,
+    /// Force on every DOF plus force on the global DOFs only (world).
+    f: DVec3,
+    /// Stiffness weight of both.
+    kappa: f64,
+    /// Point-to-plane stiffness (0 without).
+    rho: f64,
+    /// Model-frame point p_i.
+    p: DVec3,
+    /// (X, Y, Z): the unit-scale superquadric point (see [`jacobian_coefficients`]).
+    base: [f64; 3],
+    /// The log features φ_x, φ_y, φ_z.
+    phi: [[f64; 3]; 3],
+}
+
+/// Calls `visit` for every node with a force, spring or plane spring on it, with the terms of
+/// the node's row of J (signed powers from the workspace's grid, logs from the tessellation).
+#[inline(always)]
+fn for_each_forced_node(
+    tess: &Tessellation,
+    ws: &Workspace,
+    forces: &NodalForces,
+    mut visit: impl FnMut(&ForcedNode),
+) {
+    let (points, grid) = (&ws.points, &ws.grid);
+    let plane = forces.plane_stiffness.len() == forces.force.len();
+    tess.for_each_grid_node(|i, ring, lon| {
+        let f = forces.force[i] + forces.shape_force[i];
+        let kappa = forces.stiffness[i] + forces.shape_stiffness[i];
+        let rho = if plane {
+            forces.plane_stiffness[i]
+        } else {
+            0.0
+        };
+        if kappa == 0.0 && rho == 0.0 && f == DVec3::ZERO {
+            return;
+        }
+        let [cu, su] = grid.rings[ring];
+        let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
+        let ([ln_cu, ln_su], [ln_cv, ln_sv]) = tess.grid_logs(ring, lon);
+        visit(&ForcedNode {
+            i,
+            f,
+            kappa,
+            rho,
+            p: points[i],
+            base: [cu * cv, cu * sv, su],
+            phi: [[1.0, ln_cu, ln_cv], [1.0, ln_cu, ln_sv], [1.0, ln_su, 0.0]],
+        });
+    });
+}
+
 /// The stiffness-weighted Gram matrix Σ κ_i L_iᵀ L_i (plus the point-to-plane terms), the
 /// generalized forces Σ L_iᵀ F_i and the total stiffness weight: through the superquadric's
 /// moments ([`global_system_superquadric`]) when the model is a plain superquadric whose
@@ -515,7 +589,6 @@ fn global_system_general(
     forces: &NodalForces,
 ) -> ([[f64; NUM_GLOBAL]; NUM_GLOBAL], [f64; NUM_GLOBAL], f64) {
     const M: usize = NUM_GLOBAL - 3;
-    let (points, grid) = (&ws.points, &ws.grid);
     let r = rotation_matrix(state.rotation);
     let rt = r.transpose();
     let g = g_matrix(state.rotation);
@@ -526,7 +599,6 @@ fn global_system_general(
     let mut d_height = [0.0; NUM_SHAPE];
     d_height[0] = q.a3;
     d_height[3] = q.a;
-    let plane = forces.plane_stiffness.len() == forces.force.len();
     let mut gram = [[0.0; M]; M]; // Σ κ colᵀcol + Σ ρ (col·m)(col·m), upper triangle
     let mut k_col = [DVec3::ZERO; M]; // Σ κ col (model frame)
     let mut rho_n_col = [DVec3::ZERO; M]; // Σ ρ n (col·m) (world n)
@@ -534,60 +606,44 @@ fn global_system_general(
     let mut f_model = [0.0; M];
     let mut f_c = DVec3::ZERO;
     let (mut kappa_sum, mut plane_sum) = (0.0, 0.0);
-    tess.for_each_grid_node(|i, ring, lon| {
-        let f = forces.force[i] + forces.shape_force[i];
-        let kappa = forces.stiffness[i] + forces.shape_stiffness[i];
-        let rho = if plane {
-            forces.plane_stiffness[i]
-        } else {
-            0.0
-        };
-        if kappa == 0.0 && rho == 0.0 && f == DVec3::ZERO {
-            return;
-        }
-        let p = points[i];
-        let [cu, su] = grid.rings[ring];
-        let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
-        let base = [cu * cv, cu * sv, su];
-        let ([ln_cu, ln_su], [ln_cv, ln_sv]) = tess.grid_logs(ring, lon);
-        let phi = [[1.0, ln_cu, ln_cv], [1.0, ln_cu, ln_sv], [1.0, ln_su, 0.0]];
-        let s = axes * DVec3::from_array(base);
+    for_each_forced_node(tess, ws, forces, |node| {
+        let s = axes * DVec3::from_array(node.base);
         let t = state.deformation.jacobian(s, axes.z);
         let mut cols = [DVec3::ZERO; M];
         for j in 0..4 {
-            cols[j] = g[j].cross(p);
+            cols[j] = g[j].cross(node.p);
         }
         for b in 0..NUM_SHAPE {
             let jb = DVec3::new(
-                base[0] * dot3(&alpha[0][b], &phi[0]),
-                base[1] * dot3(&alpha[1][b], &phi[1]),
-                base[2] * dot3(&alpha[2][b], &phi[2]),
+                node.base[0] * dot3(&alpha[0][b], &node.phi[0]),
+                node.base[1] * dot3(&alpha[1][b], &node.phi[1]),
+                node.base[2] * dot3(&alpha[2][b], &node.phi[2]),
             );
             cols[4 + b] = t.d_point * jb + d_height[b] * t.d_height;
         }
         cols[4 + NUM_SHAPE..].copy_from_slice(&t.d_params);
-        let fm = rt * f;
-        f_c += f;
+        let fm = rt * node.f;
+        f_c += node.f;
         for (fa, col) in f_model.iter_mut().zip(&cols) {
             *fa += col.dot(fm);
         }
-        let n = if rho != 0.0 {
-            forces.plane_normal[i]
+        let n = if node.rho != 0.0 {
+            forces.plane_normal[node.i]
         } else {
             DVec3::ZERO
         };
         let m = rt * n;
         let along: [f64; M] = std::array::from_fn(|a| cols[a].dot(m));
         for a in 0..M {
-            k_col[a] += kappa * cols[a];
-            rho_n_col[a] += rho * along[a] * n;
+            k_col[a] += node.kappa * cols[a];
+            rho_n_col[a] += node.rho * along[a] * n;
             for b in a..M {
-                gram[a][b] += kappa * cols[a].dot(cols[b]) + rho * along[a] * along[b];
+                gram[a][b] += node.kappa * cols[a].dot(cols[b]) + node.rho * along[a] * along[b];
             }
         }
-        rho_nn += rho * DMat3::from_cols(n.x * n, n.y * n, n.z * n);
-        kappa_sum += kappa;
-        plane_sum += rho;
+        rho_nn += node.rho * DMat3::from_cols(n.x * n, n.y * n, n.z * n);
+        kappa_sum += node.kappa;
+        plane_sum += node.rho;
     });
     let mut c = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
     for k in 0..3 {
@@ -626,7 +682,6 @@ fn global_system_superquadric(
     ws: &Workspace,
     forces: &NodalForces,
 ) -> ([[f64; NUM_GLOBAL]; NUM_GLOBAL], [f64; NUM_GLOBAL], f64) {
-    let (points, grid) = (&ws.points, &ws.grid);
     let r = rotation_matrix(state.rotation);
     let rt = r.transpose();
     let g = g_matrix(state.rotation);
@@ -642,26 +697,18 @@ fn global_system_superquadric(
     let mut w = [[[0.0; 3]; 3]; 3];
     let mut fs = [[0.0; 3]; 3];
     let alpha = jacobian_coefficients(&state.shape);
-    let plane = forces.plane_stiffness.len() == forces.force.len();
     let mut plane_gram = [[0.0; NUM_GLOBAL]; NUM_GLOBAL]; // Σ ρ g gᵀ, upper triangle
     let mut plane_sum = 0.0;
-    tess.for_each_grid_node(|i, ring, lon| {
-        let f = forces.force[i] + forces.shape_force[i];
-        let kappa = forces.stiffness[i] + forces.shape_stiffness[i];
-        let rho = if plane {
-            forces.plane_stiffness[i]
-        } else {
-            0.0
-        };
-        if kappa == 0.0 && rho == 0.0 && f == DVec3::ZERO {
-            return;
-        }
-        let p = points[i];
-        let [cu, su] = grid.rings[ring];
-        let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
-        let base = [cu * cv, cu * sv, su];
-        let ([ln_cu, ln_su], [ln_cv, ln_sv]) = tess.grid_logs(ring, lon);
-        let phi = [[1.0, ln_cu, ln_cv], [1.0, ln_cu, ln_sv], [1.0, ln_su, 0.0]];
+    for_each_forced_node(tess, ws, forces, |node| {
+        let ForcedNode {
+            i,
+            f,
+            kappa,
+            rho,
+            p,
+            base,
+            phi,
+        } = *node;
         let fm = rt * f;
         f_c += f;
         torque += p.cross(fm);

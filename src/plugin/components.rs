@@ -540,7 +540,11 @@ pub(crate) fn take_state(
         translation: rigid.translation,
         rotation: rigid.rotation,
         shape: (*shape).into(),
-        deformation: shape.deformation(),
+        // Brought within bounds here, so that a value set from outside (an inspector) can never
+        // turn the surface inside out.
+        deformation: shape
+            .deformation()
+            .clamped(SuperquadricParams::from(*shape).semi_axes()),
         displacement: std::mem::take(&mut local.displacement),
     }
 }
