@@ -497,3 +497,47 @@ fn robust_flags_are_refused_through_the_app() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("not through the plugin"), "{err}");
 }
+
+#[test]
+fn taper_and_bend_reach_the_summary_and_are_refused_for_images_and_scenes() {
+    // The banana scene frees its part's taper and bend: the fit recovers the tube's (each end
+    // turned by 0.6 rad, the section growing by 40 %).
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/scenes/banana.dsq.ron");
+    let lines = json_lines(&run(&["--scene", scene, "--quiet"]));
+    let line = &lines[0];
+    let (taper, bend) = (pair_of(line, "taper"), pair_of(line, "bend"));
+    assert!(taper.iter().all(|t| (t.abs() - 0.4).abs() < 0.1), "{line}");
+    assert!((bend[0].hypot(bend[1]) - 0.6).abs() < 0.1, "{line}");
+    // A plain fit reports none.
+    let plain = json_lines(&run(&["--paper", "mug", "--global-only", "--quiet"]));
+    assert_eq!(pair_of(&plain[0], "taper"), [0.0, 0.0]);
+    assert_eq!(pair_of(&plain[0], "bend"), [0.0, 0.0]);
+    assert_bad_input(&["--scene", scene, "--taper"], "--taper", "point fits");
+    let image = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/data/rocket.png");
+    assert_bad_input(&["--image", image, "--bend"], "--bend", "point fits");
+}
+
+fn pair_of(line: &serde_json::Value, key: &str) -> [f64; 2] {
+    let v = line[key]
+        .as_array()
+        .unwrap_or_else(|| panic!("no {key}: {line}"));
+    [v[0].as_f64().unwrap(), v[1].as_f64().unwrap()]
+}
+
+#[test]
+fn the_deform_example_prints_four_fits_per_object() {
+    let out = Command::new(example_binary("deform"))
+        .output()
+        .expect("run deform");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    let rows: Vec<&str> = text
+        .lines()
+        .filter(|l| l.starts_with("| banana") || l.starts_with("| cow"))
+        .collect();
+    assert_eq!(rows.len(), 8, "{text}");
+    for row in rows {
+        // steps, wall ms, mean, p95.
+        assert_numeric_cells(row, 4..8, 1);
+    }
+}
