@@ -16,6 +16,7 @@ pub mod fit;
 pub mod forces;
 pub mod frame;
 pub mod image_fit;
+pub mod inertia;
 pub mod init;
 pub mod linalg;
 pub mod noise;
