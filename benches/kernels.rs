@@ -13,6 +13,7 @@ use bevy_deformable_sq::model::fit::{FitOptions, fit};
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::forces::range::{InfluenceMode, RangeForces, nearest_indices};
 use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment};
+use bevy_deformable_sq::model::inertia::{InertiaParams, Velocity, step as inertia_step};
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
@@ -256,9 +257,52 @@ fn memory_per_node(_: &mut Criterion) {
     }
 }
 
+/// Issue 9's additions against the paper's step, on the same models: the first-order step with
+/// tapering and bending free (the global system summed column by column), and a second-order
+/// step (`model::inertia`) with the default mass and damping.
+fn beyond_the_paper_step(c: &mut Criterion) {
+    let mut g = c.benchmark_group("beyond_the_paper_step");
+    for (k, m) in [(71, 5000), (31, 1000)] {
+        let (tess, state, range) = attached(k, m);
+        let mut params = DynamicsParams {
+            dt: 0.01,
+            ..Default::default()
+        };
+        params.free.taper = true;
+        params.free.bend = true;
+        let label = format!("{}n_{m}p", tess.node_count());
+        let (mut forces, mut ws) = (NodalForces::new(tess.node_count()), Workspace::default());
+        let mut s = state.clone();
+        g.bench_with_input(BenchmarkId::new("taper_bend", &label), &(), |b, _| {
+            b.iter(|| {
+                step_once(&tess, &mut s, &range, &mut forces, &mut ws, &params);
+                if s.displacement[0].length() > 1.0 {
+                    s = state.clone();
+                }
+            })
+        });
+        let inertia = InertiaParams::default();
+        let mut s = state.clone();
+        let mut v = Velocity::zero(tess.node_count());
+        g.bench_with_input(BenchmarkId::new("second_order", &label), &(), |b, _| {
+            b.iter(|| {
+                forces.clear(tess.node_count());
+                range.accumulate(&tess, ws.prepare(&tess, &s), &mut forces);
+                inertia_step(&tess, &mut s, &mut v, &forces, &params, &inertia).expect("finite");
+                if s.displacement[0].length() > 1.0 {
+                    s = state.clone();
+                    v = Velocity::zero(tess.node_count());
+                }
+            })
+        });
+    }
+    g.finish();
+}
+
 criterion_group!(
     benches,
     euler_step,
+    beyond_the_paper_step,
     reassignment,
     app_step,
     app_step_image,

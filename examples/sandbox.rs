@@ -735,6 +735,7 @@ fn inspector(
         Option<&mut RangeData>,
         Option<&mut ImageData>,
         Option<&FitDriver>,
+        Option<&mut Inertia>,
     )>,
     mut images: Query<&mut Visibility, With<SceneImage>>,
     mut scene_images: Query<&mut SceneImage>,
@@ -746,6 +747,9 @@ fn inspector(
     egui::Window::new("Deformable superquadrics")
         .default_pos([10.0, 10.0])
         .default_width(300.0)
+        // The selected part's controls run past a small window's bottom: scroll to them.
+        .vscroll(true)
+        .default_height(690.0)
         .show(ctx, |ui| {
             let frame_ms = diagnostics
                 .get(&FrameTimeDiagnosticsPlugin::FRAME_TIME)
@@ -797,7 +801,7 @@ fn inspector(
                     sandbox.single_steps += 1;
                 }
             });
-            ui.add(egui::Slider::new(&mut sandbox.steps_per_frame, 1..=20).text("steps per frame"));
+            ui.add(edit_slider(&mut sandbox.steps_per_frame, 1..=20).text("steps per frame"));
             ui.checkbox(&mut debug.points, "data points");
             ui.checkbox(&mut debug.data_springs, "data springs");
             ui.checkbox(&mut debug.user_springs, "mouse springs");
@@ -835,7 +839,7 @@ fn inspector(
                 .changed()
             {
                 for e in instances.iter().flat_map(|i| i.parts.clone()) {
-                    if let Ok((_, _, _, range, image, _)) = parts.get_mut(e) {
+                    if let Ok((_, _, _, range, image, ..)) = parts.get_mut(e) {
                         let beta = match (range, image) {
                             (Some(r), _) => &mut r.into_inner().forces.beta,
                             (_, Some(im)) => &mut im.into_inner().forces.beta,
@@ -868,57 +872,79 @@ fn inspector(
                 }
             }
             let Some(sel) = sandbox.selected else { return };
-            let Ok((mut shape, mut settings, mut control, range, _, driver)) = parts.get_mut(sel)
+            let Ok((mut shape, mut settings, mut control, range, _, driver, inertia)) =
+                parts.get_mut(sel)
             else {
                 return;
             };
             ui.separator();
             let g = &mut *shape;
-            ui.add(egui::Slider::new(&mut g.a, 0.05..=3.0).text("a"));
-            ui.add(egui::Slider::new(&mut g.a1, 0.05..=1.0).text("a1"));
-            ui.add(egui::Slider::new(&mut g.a2, 0.05..=1.0).text("a2"));
-            ui.add(egui::Slider::new(&mut g.a3, 0.05..=1.0).text("a3"));
-            ui.add(egui::Slider::new(&mut g.e1, 0.1..=2.0).text("ε1"));
-            ui.add(egui::Slider::new(&mut g.e2, 0.1..=2.0).text("ε2"));
+            ui.add(edit_slider(&mut g.a, 0.05..=3.0).text("a"));
+            ui.add(edit_slider(&mut g.a1, 0.05..=1.0).text("a1"));
+            ui.add(edit_slider(&mut g.a2, 0.05..=1.0).text("a2"));
+            ui.add(edit_slider(&mut g.a3, 0.05..=1.0).text("a3"));
+            ui.add(edit_slider(&mut g.e1, 0.1..=2.0).text("ε1"));
+            ui.add(edit_slider(&mut g.e2, 0.1..=2.0).text("ε2"));
             // Tapering and bending (beyond the paper; model::deform). The step keeps them within
             // their bounds for the shape.
-            ui.add(egui::Slider::new(&mut g.taper[0], -MAX_TAPER..=MAX_TAPER).text("taper x"));
-            ui.add(egui::Slider::new(&mut g.taper[1], -MAX_TAPER..=MAX_TAPER).text("taper y"));
-            ui.add(egui::Slider::new(&mut g.bend[0], -MAX_BEND..=MAX_BEND).text("bend x"));
-            ui.add(egui::Slider::new(&mut g.bend[1], -MAX_BEND..=MAX_BEND).text("bend y"));
+            ui.add(edit_slider(&mut g.taper[0], -MAX_TAPER..=MAX_TAPER).text("taper x"));
+            ui.add(edit_slider(&mut g.taper[1], -MAX_TAPER..=MAX_TAPER).text("taper y"));
+            ui.add(edit_slider(&mut g.bend[0], -MAX_BEND..=MAX_BEND).text("bend x"));
+            ui.add(edit_slider(&mut g.bend[1], -MAX_BEND..=MAX_BEND).text("bend y"));
             let s = &mut *settings;
             ui.add(
-                egui::Slider::new(&mut s.w0, 0.0..=0.1)
+                edit_slider(&mut s.w0, 0.0..=0.1)
                     .logarithmic(true)
                     .text("w0"),
             );
             ui.add(
-                egui::Slider::new(&mut s.w1, 0.0..=2.0)
+                edit_slider(&mut s.w1, 0.0..=2.0)
                     .logarithmic(true)
                     .text("w1"),
             );
             ui.add(
-                egui::Slider::new(&mut s.gamma_global, 0.01..=10.0)
+                edit_slider(&mut s.gamma_global, 0.01..=10.0)
                     .logarithmic(true)
                     .text("γ global"),
             );
             ui.add(
-                egui::Slider::new(&mut s.gamma_local, 0.01..=10.0)
+                edit_slider(&mut s.gamma_local, 0.01..=10.0)
                     .logarithmic(true)
                     .text("γ local"),
             );
             ui.add(
-                egui::Slider::new(&mut s.dt, 0.001..=0.2)
+                edit_slider(&mut s.dt, 0.001..=0.2)
                     .logarithmic(true)
                     .text("Δt"),
             );
-            ui.add(egui::Slider::new(&mut s.reassign_every, 1..=1000).text("reassign every"));
+            ui.add(edit_slider(&mut s.reassign_every, 1..=1000).text("reassign every"));
             ui.checkbox(&mut s.global_only, "global only");
             ui.checkbox(&mut s.fix_epsilon, "fix ε");
             ui.horizontal(|ui| {
                 ui.checkbox(&mut s.taper, "free taper");
                 ui.checkbox(&mut s.bend, "free bend");
             });
+            // Second-order dynamics (model::inertia): with mass the model swings and settles.
+            let mut second_order = inertia.is_some();
+            if ui
+                .checkbox(&mut second_order, "inertia (second order)")
+                .changed()
+            {
+                if second_order {
+                    commands.entity(sel).insert(Inertia::default());
+                } else {
+                    commands.entity(sel).remove::<Inertia>();
+                }
+            }
+            if let Some(mut inertia) = inertia {
+                let p = &mut inertia.params;
+                ui.add(
+                    edit_slider(&mut p.mass_density, 0.01..=100.0)
+                        .logarithmic(true)
+                        .text("mass density μ"),
+                );
+                ui.add(edit_slider(&mut p.damping, 0.0..=10.0).text("damping β"));
+            }
             ui.horizontal(|ui| {
                 if ui.button("Reset").clicked() {
                     control.reset_requested = true;
@@ -1009,3 +1035,12 @@ fn plot(ui: &mut egui::Ui, values: &VecDeque<f32>) {
 
 #[path = "support/screenshot.rs"]
 mod screenshot;
+
+/// A slider that clamps what the user enters to `range` but leaves values outside it alone (egui
+/// clamps every shown value by default, which would silently change a model the inspector shows).
+fn edit_slider<Num: egui::emath::Numeric>(
+    value: &mut Num,
+    range: std::ops::RangeInclusive<Num>,
+) -> egui::Slider<'_> {
+    egui::Slider::new(value, range).clamping(egui::SliderClamping::Edits)
+}

@@ -35,8 +35,8 @@ pub mod prelude {
         ScenePart,
     };
     pub use crate::plugin::{
-        DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, ImageData, LocalDofs,
-        ModelSettings, RangeData, RigidState, SimControl, Spring, SpringForces,
+        DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, ImageData, Inertia,
+        LocalDofs, ModelSettings, RangeData, RigidState, SimControl, Spring, SpringForces,
     };
     pub use crate::render::{ModelColor, ModelMesh};
 }

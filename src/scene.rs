@@ -41,6 +41,7 @@ use crate::model::forces::image::{
 };
 use crate::model::forces::range::{DEFAULT_COVERAGE, InfluenceMode};
 use crate::model::image_fit::{ImageFitOptions, ImagePartFit, PartAxes, fit_part};
+use crate::model::inertia::InertiaParams;
 use crate::model::init::{InitialPose, initial_pose};
 use crate::model::noise::{NOISE_NEIGHBOURS, NoiseEstimate, estimate_noise, stiffness_for_noise};
 use crate::model::parts::{PARTITION_ROUNDS, partition};
@@ -249,6 +250,10 @@ pub struct PartDef {
     /// `free.taper` / `free.bend` say so.
     #[serde(default, skip_serializing_if = "GlobalDeformation::is_identity")]
     pub deformation: GlobalDeformation,
+    /// Second-order dynamics with mass ([`crate::model::inertia`]): `inertia: (mass_density: 1.0,
+    /// local_inertia: 1.0, damping: 0.5)`; absent: the paper's first-order fitting dynamics.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inertia: Option<InertiaParams>,
 }
 
 /// Where a part starts.
@@ -807,6 +812,7 @@ impl PartDef {
             fit: FitSettings::default(),
             local: None,
             deformation: GlobalDeformation::IDENTITY,
+            inertia: None,
         }
     }
 
@@ -905,6 +911,17 @@ impl PartDef {
             }
         }
         self.validate_deformation(file, &f)?;
+        if let Some(i) = &self.inertia {
+            check(file, &f("inertia.mass_density"), i.mass_density, 0.0, true)?;
+            check(
+                file,
+                &f("inertia.local_inertia"),
+                i.local_inertia,
+                0.0,
+                true,
+            )?;
+            check(file, &f("inertia.damping"), i.damping, 0.0, false)?;
+        }
         if !(MIN_K..=MAX_K).contains(&self.k) {
             return Err(SceneError::at_field(
                 file,

@@ -25,6 +25,20 @@ fn example_binary(name: &str) -> PathBuf {
     bin
 }
 
+/// What example `name` printed, run without arguments (fails the test when the run failed).
+fn example_stdout(name: &str) -> String {
+    let out = Command::new(example_binary(name))
+        .output()
+        .unwrap_or_else(|e| panic!("run {name}: {e}"));
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{name}: {text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    text
+}
+
 fn scratch() -> PathBuf {
     let d = std::env::temp_dir().join(format!("bdsq-cli-{}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();
@@ -406,11 +420,7 @@ fn the_index_example_finds_each_complete_objects_own_library_part() {
 
 #[test]
 fn the_ems_comparison_example_prints_a_row_per_cloud() {
-    let out = Command::new(example_binary("compare_ems"))
-        .output()
-        .expect("run compare_ems");
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}");
+    let text = example_stdout("compare_ems");
     let rows: Vec<&str> = text
         .lines()
         .filter(|l| l.contains("pointCloud_example"))
@@ -526,11 +536,7 @@ fn pair_of(line: &serde_json::Value, key: &str) -> [f64; 2] {
 
 #[test]
 fn the_deform_example_prints_four_fits_per_object() {
-    let out = Command::new(example_binary("deform"))
-        .output()
-        .expect("run deform");
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}");
+    let text = example_stdout("deform");
     let rows: Vec<&str> = text
         .lines()
         .filter(|l| l.starts_with("| banana") || l.starts_with("| cow"))

@@ -547,3 +547,100 @@ fn a_mouse_spring_dragged_far_away_pulls_the_model_without_blowing_up() {
     assert!(grabbed_x.last().unwrap() > &10.0, "{:?}", grabbed_x.last());
     assert!(grabbed_x.windows(2).filter(|w| w[1] < w[0] - 1e-9).count() < 10);
 }
+
+#[test]
+fn a_model_with_inertia_keeps_moving_swings_on_a_spring_and_resets_to_rest() {
+    // Second-order dynamics through the plugin: a model given a velocity and no force coasts
+    // (a first-order model would stay put); pulled by a spring it swings past the anchor and
+    // settles there; reset brings it back at rest.
+    let mut app = app();
+    let settings = ModelSettings {
+        dt: 0.01,
+        global_only: true,
+        ..Default::default()
+    };
+    let mut inertia = Inertia::default();
+    inertia.velocity.linear = DVec3::new(1.0, 0.0, 0.0);
+    let coasting = app
+        .world_mut()
+        .spawn((
+            start_shape(),
+            RigidState::default(),
+            settings,
+            inertia,
+            FemMesh::new(9),
+        ))
+        .id();
+    let still = app
+        .world_mut()
+        .spawn((
+            start_shape(),
+            RigidState::default(),
+            settings,
+            FemMesh::new(9),
+        ))
+        .id();
+    run_steps(&mut app, 100);
+    let steps = app.world().get::<SimControl>(coasting).unwrap().steps as f64;
+    let x = app.world().get::<RigidState>(coasting).unwrap().translation;
+    // Undamped it would move 1 × t; the default damping (β = 0.5) slows it as e^(−βt).
+    let t = steps * 0.01;
+    let expected = (1.0 - (-0.5 * t).exp()) / 0.5;
+    assert!(
+        (x.x - expected).abs() < 0.02 * expected,
+        "coasted {x}, expected {expected}"
+    );
+    assert_eq!(
+        app.world().get::<RigidState>(still).unwrap().translation,
+        DVec3::ZERO
+    );
+
+    // A spring on the north pole towards (0, 0, 3): the pole swings past it and settles.
+    let anchor = DVec3::new(0.0, 0.0, 3.0);
+    let pulled = app
+        .world_mut()
+        .spawn((
+            start_shape(),
+            RigidState::default(),
+            ModelSettings {
+                dt: 0.02,
+                ..settings
+            },
+            Inertia::default(),
+            FemMesh::new(9),
+            SpringForces(vec![Spring {
+                u: std::f64::consts::FRAC_PI_2,
+                v: 0.0,
+                anchor,
+                stiffness: 4.0,
+            }]),
+        ))
+        .id();
+    let (mut closest, mut swing_back) = (f64::INFINITY, 0.0_f64);
+    for _ in 0..1500 {
+        app.update();
+        let d = (pole_of(&app, pulled) - anchor).length();
+        closest = closest.min(d);
+        swing_back = swing_back.max(d - closest);
+    }
+    assert!(swing_back > 0.1, "never overshot: {swing_back}");
+    // The spring also stretches the shape (K_ss = 0): the pole is where it settles.
+    let off = (pole_of(&app, pulled) - anchor).length();
+    assert!(off < 0.02, "came to rest {off} off");
+    assert!(!app.world().get::<SimControl>(pulled).unwrap().frozen);
+
+    app.world_mut()
+        .get_mut::<SimControl>(coasting)
+        .unwrap()
+        .reset_requested = true;
+    app.update();
+    app.update();
+    let v = &app.world().get::<Inertia>(coasting).unwrap().velocity;
+    assert!(v.linear.length() < 1e-12, "after reset {v:?}");
+}
+
+/// The north pole of a global-only model: c + R (0, 0, a·a3).
+fn pole_of(app: &App, e: Entity) -> DVec3 {
+    let (rigid, shape, _, _) = state_of(app, e);
+    rigid.translation + rigid.rotation * DVec3::new(0.0, 0.0, shape.a * shape.a3)
+}

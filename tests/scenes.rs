@@ -950,3 +950,42 @@ fn the_readme_example_scene_parses_and_loads() {
     );
     assert!(data.initial_state(&def, 1).is_some());
 }
+
+#[test]
+fn a_parts_inertia_is_read_spawned_saved_and_checked() {
+    // `inertia: (..)` gives the spawned part an Inertia component (second-order dynamics) with
+    // those parameters (the rest default), and saving the scene writes it back; a bad value is
+    // refused naming the field.
+    let dir = scratch("inertia");
+    let part = GOOD_PART.replace("k: 5,", "k: 5, inertia: (damping: 2.0),");
+    std::fs::write(dir.join("mass.dsq.ron"), scene_text(&part, PTS)).unwrap();
+    let mut app = scene_app(&dir);
+    let root = load(&mut app, "mass.dsq.ron");
+    let e = parts(&app, root)[0];
+    let inertia = app.world().get::<Inertia>(e).expect("the part has inertia");
+    assert_eq!(inertia.params.damping, 2.0);
+    assert_eq!(
+        inertia.params.mass_density,
+        bevy_deformable_sq::model::inertia::InertiaParams::default().mass_density
+    );
+    for _ in 0..3 {
+        app.world_mut().run_schedule(Step);
+    }
+    assert!(!app.world().get::<SimControl>(e).unwrap().frozen);
+    save_scene(app.world(), root, &dir.join("saved.dsq.ron"), &dir, false).unwrap();
+    let (def, _) = SceneDef::load_file(&dir.join("saved.dsq.ron")).unwrap();
+    assert_eq!(def.parts[0].inertia.map(|i| i.damping), Some(2.0));
+    // A part without it has none, and none is written.
+    let plain = SceneDef::parse(&scene_text(GOOD_PART, PTS), Path::new("good.dsq.ron")).unwrap();
+    assert!(plain.parts[0].inertia.is_none());
+    assert!(!plain.to_ron().unwrap().contains("inertia"));
+    for (value, field) in [
+        ("(mass_density: 0.0)", "parts[0].inertia.mass_density"),
+        ("(local_inertia: -1.0)", "parts[0].inertia.local_inertia"),
+        ("(damping: inf)", "parts[0].inertia.damping"),
+    ] {
+        let part = GOOD_PART.replace("k: 5,", &format!("k: 5, inertia: {value},"));
+        let e = parse_err(&scene_text(&part, PTS));
+        assert_names(&e, Some(field), None, "finite number");
+    }
+}

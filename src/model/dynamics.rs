@@ -1126,12 +1126,13 @@ pub fn step_prepared(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::model::frame::quat_from_paper;
     use crate::model::superquadric::jacobian;
 
-    fn test_state(tess: &Tessellation) -> ModelState {
+    /// A posed, non-trivial superquadric with a small displacement at every node.
+    pub(crate) fn test_state(tess: &Tessellation) -> ModelState {
         let mut s = ModelState::new(
             tess,
             DVec3::new(0.3, -0.2, 0.5),

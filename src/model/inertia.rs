@@ -54,6 +54,7 @@ pub const MAX_SUBSTEPS: u32 = 256;
 
 /// Mass, damping and the inertia of the deformation coordinates.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
 pub struct InertiaParams {
     /// Mass density μ per unit material area (node i weighs μ A_i).
     pub mass_density: f64,
@@ -556,35 +557,28 @@ fn advance(state: &mut ModelState, v: &mut Velocity, h: f64) {
 mod tests {
     use super::*;
 
+    /// `dynamics`' test state, elongated along z (so that it may bend), optionally tapered and
+    /// bent.
     fn state(tess: &Tessellation, deformed: bool) -> ModelState {
-        let mut s = ModelState::new(
-            tess,
-            DVec3::new(0.3, -0.2, 0.5),
-            DQuat::from_axis_angle(DVec3::new(0.2, 1.0, -0.4).normalize(), 0.7),
-            SuperquadricParams {
-                a: 1.3,
+        let s = crate::model::dynamics::tests::test_state(tess);
+        let deformation = if deformed {
+            GlobalDeformation {
+                taper: [0.2, -0.1],
+                bend: [0.3, 0.15],
+            }
+        } else {
+            GlobalDeformation::IDENTITY
+        };
+        ModelState {
+            shape: SuperquadricParams {
                 a1: 0.6,
                 a2: 0.5,
                 a3: 1.0,
-                e1: 0.8,
-                e2: 1.2,
+                ..s.shape
             },
-        );
-        if deformed {
-            s.deformation = GlobalDeformation {
-                taper: [0.2, -0.1],
-                bend: [0.3, 0.15],
-            };
+            deformation,
+            ..s
         }
-        for (i, d) in s.displacement.iter_mut().enumerate() {
-            *d = 0.02
-                * DVec3::new(
-                    (i as f64 * 0.7).sin(),
-                    (i as f64 * 1.3).cos(),
-                    (i as f64).sin(),
-                );
-        }
-        s
     }
 
     fn moving(tess: &Tessellation) -> Velocity {

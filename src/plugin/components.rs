@@ -11,6 +11,7 @@ use crate::model::dynamics::{DynamicsParams, FreeDofs, ModelState, NodalForces, 
 use crate::model::fem::Tessellation;
 use crate::model::fit::{FitOptions, Stage, StageClock};
 use crate::model::forces::range::{InfluenceMode, RangeForces};
+use crate::model::inertia::{InertiaParams, Velocity};
 use crate::model::superquadric::SuperquadricParams;
 use bevy::math::{DQuat, DVec3};
 use bevy::prelude::*;
@@ -272,6 +273,35 @@ impl ModelSettings {
                 ..FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon)
             },
             ..DynamicsParams::default()
+        }
+    }
+}
+
+/// Second-order dynamics for this model (eq. 12 with mass, [`crate::model::inertia`]) instead of
+/// the paper's first-order fitting dynamics: a pulled model swings, overshoots and settles. Add it
+/// to a model to switch, remove it to switch back; the integrate stage keeps the velocity here.
+/// Reset zeroes it; Δt, w0, w1 and the free DOFs still come from [`ModelSettings`].
+#[derive(Component, Clone, Debug, PartialEq)]
+pub struct Inertia {
+    /// Mass density, the deformation coordinates' own inertia and the damping rate.
+    pub params: InertiaParams,
+    /// The generalized velocity, sized to the mesh on the next step.
+    pub velocity: Velocity,
+}
+
+impl Default for Inertia {
+    /// [`InertiaParams::default`], at rest.
+    fn default() -> Self {
+        Self::new(InertiaParams::default())
+    }
+}
+
+impl Inertia {
+    /// At rest, with `params`.
+    pub fn new(params: InertiaParams) -> Self {
+        Self {
+            params,
+            velocity: Velocity::default(),
         }
     }
 }

@@ -18,11 +18,13 @@
 //! ```
 
 use super::{
-    FemMesh, FitDriver, GlobalShape, ImageData, LocalDofs, ModelSettings, RangeData, RigidState,
+    FemMesh, FitDriver, GlobalShape, ImageData, Inertia, LocalDofs, ModelSettings, RangeData,
+    RigidState,
 };
 use crate::model::dynamics::ModelState;
 use crate::model::fit::{Normalization, Stage, global_stages, has_joint_stage};
 use crate::model::forces::range::RangeForces;
+use crate::render::{ModelColor, PALETTE};
 use crate::scene::{Forces, PartDef, SCENE_EXTENSION, SceneData, SceneDef, SceneError};
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext, LoadState};
@@ -192,8 +194,13 @@ fn spawn_part(
         },
         FemMesh::new(part.k),
         part_settings(part),
+        // The part's colour follows its place in the scene, whatever components it carries.
+        ModelColor(PALETTE[index % PALETTE.len()]),
         ChildOf(root),
     ));
+    if let Some(params) = part.inertia {
+        e.insert(Inertia::new(params));
+    }
     match &part.forces {
         Forces::Free => {}
         Forces::Range {
@@ -363,6 +370,7 @@ pub fn scene_from_world(
         }
         part.free.taper = s.taper;
         part.free.bend = s.bend;
+        part.inertia = world.get::<Inertia>(e).map(|i| i.params);
         let state = ModelState {
             translation: rigid.translation,
             rotation: rigid.rotation,

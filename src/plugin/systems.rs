@@ -6,6 +6,7 @@ use super::components::*;
 use crate::model::dynamics::step;
 use crate::model::fit::{Stage, StageClock, max_motion};
 use crate::model::forces::range::Robust;
+use crate::model::inertia::{self, Velocity};
 use crate::model::superquadric::SuperquadricParams;
 use bevy::math::DVec3;
 use bevy::prelude::*;
@@ -46,10 +47,20 @@ pub fn prepare(
         &mut SimControl,
         &mut Scratch,
         Option<&mut RangeData>,
+        Option<&mut Inertia>,
     )>,
 ) {
-    for (entity, mut fem, mut rigid, mut shape, mut local, mut control, mut scratch, range) in
-        &mut models
+    for (
+        entity,
+        mut fem,
+        mut rigid,
+        mut shape,
+        mut local,
+        mut control,
+        mut scratch,
+        range,
+        inertia,
+    ) in &mut models
     {
         if fem.get().is_none() {
             fem.tessellation = Some(cache.get(fem.k));
@@ -69,6 +80,9 @@ pub fn prepare(
                 *rigid = r;
                 *shape = s;
                 *local = l;
+            }
+            if let Some(mut inertia) = inertia {
+                inertia.velocity = Velocity::zero(n);
             }
             if let Some(mut range) = range {
                 range.forces.influence.clear();
@@ -206,7 +220,8 @@ pub fn gather_forces(
     );
 }
 
-/// Stage `Integrate`: one explicit Euler step (eq. 15) per model. A refused step (non-finite)
+/// Stage `Integrate`: one explicit Euler step (eq. 15) per model, or one step of the
+/// second-order dynamics (eq. 12) for a model with [`Inertia`]. A refused step (non-finite)
 /// freezes the model and logs the error; nothing non-finite is written.
 pub fn integrate(
     mut models: Query<(
@@ -218,23 +233,49 @@ pub fn integrate(
         &ModelSettings,
         &mut SimControl,
         &mut Scratch,
+        Option<&mut Inertia>,
     )>,
 ) {
     models.par_iter_mut().for_each(
-        |(entity, fem, mut rigid, mut shape, mut local, settings, mut control, mut scratch)| {
+        |(
+            entity,
+            fem,
+            mut rigid,
+            mut shape,
+            mut local,
+            settings,
+            mut control,
+            mut scratch,
+            inertia,
+        )| {
             let Some(tess) = fem.get() else { return };
             if !stepping(&control) {
                 return;
             }
             let mut state = take_state(&rigid, &shape, &mut local);
             let scratch = &mut *scratch;
-            match step(
-                tess,
-                &mut state,
-                &scratch.forces,
-                &settings.dynamics_at(control.steps),
-                &mut scratch.workspace,
-            ) {
+            let params = settings.dynamics_at(control.steps);
+            let stepped = match inertia {
+                Some(mut inertia) => {
+                    let inertia = &mut *inertia;
+                    inertia::step(
+                        tess,
+                        &mut state,
+                        &mut inertia.velocity,
+                        &scratch.forces,
+                        &params,
+                        &inertia.params,
+                    )
+                }
+                None => step(
+                    tess,
+                    &mut state,
+                    &scratch.forces,
+                    &params,
+                    &mut scratch.workspace,
+                ),
+            };
+            match stepped {
                 Ok(report) => {
                     control.steps += 1;
                     control.last_substeps = report.substeps;
