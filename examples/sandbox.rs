@@ -9,7 +9,8 @@
 //! model with the left button to pull it by a spring (drawn in red); drag empty space with the
 //! left or right button to orbit, with the middle button (or Shift + right) to pan; the wheel
 //! zooms. Keys: Space pause / run, S single step, R reset the selected part, F fit the selected
-//! part to convergence, Tab next part, N place a new part with four clicks, arrows orbit, +/-
+//! part to convergence, Tab next part, N place a new part with four clicks, J join two parts
+//! with two clicks, arrows orbit, +/-
 //! zoom, Home frame the scene.
 use bevy::diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin};
 use bevy::ecs::schedule::ScheduleLabel;
@@ -23,6 +24,7 @@ use bevy_deformable_sq::model::deform::{MAX_BEND, MAX_TAPER};
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fit::{FitOptions, Stage, residuals};
 use bevy_deformable_sq::model::image_fit::ellipsoid_from_points;
+use bevy_deformable_sq::model::joint::JointEnd;
 use bevy_deformable_sq::plugin::scene::{default_assets_dir, save_scene};
 use bevy_deformable_sq::plugin::{FitDriver, Scratch};
 use bevy_deformable_sq::prelude::*;
@@ -54,6 +56,10 @@ struct Sandbox {
     root: Option<Entity>,
     /// Points picked so far while placing a new part (`None`: not placing).
     placing: Option<Vec<Vec3>>,
+    /// The ends picked so far while making a joint (`None`: not joining).
+    joining: Option<Vec<(Entity, JointEnd)>>,
+    /// The part `--demo-drag` drags (`--demo-part NAME`, default the cylinder).
+    demo_part: String,
     /// The part to select once it appears (`--select NAME`).
     select: Option<String>,
 }
@@ -130,6 +136,12 @@ fn main() {
         pending: Some(Action::Open(scene)),
         root: None,
         placing: None,
+        joining: None,
+        demo_part: args
+            .iter()
+            .position(|a| a == "--demo-part")
+            .and_then(|i| args.get(i + 1).cloned())
+            .unwrap_or_else(|| "cylinder".into()),
         select: args
             .iter()
             .position(|a| a == "--select")
@@ -160,6 +172,7 @@ fn main() {
     )
     .add_systems(EguiPrimaryContextPass, inspector)
     .add_observer(grab)
+    .add_observer(pick_joint_end)
     .add_observer(release)
     .add_observer(drag_end);
     if args.iter().any(|a| a == "--demo-drag") {
@@ -297,8 +310,13 @@ fn keys(
         sandbox.placing = Some(Vec::new());
         sandbox.message = PLACING_HELP.into();
     }
+    if input.just_pressed(KeyCode::KeyJ) {
+        sandbox.joining = Some(Vec::new());
+        sandbox.message = JOINING_HELP.into();
+    }
     if input.just_pressed(KeyCode::Escape) {
         sandbox.placing = None;
+        sandbox.joining = None;
     }
     if input.just_pressed(KeyCode::Tab) {
         let parts: Vec<Entity> = instances.iter().flat_map(|i| i.parts.clone()).collect();
@@ -438,7 +456,11 @@ fn grab(
     )>,
     mut commands: Commands,
 ) {
-    if press.button != PointerButton::Primary || grab.model.is_some() || sandbox.placing.is_some() {
+    if press.button != PointerButton::Primary
+        || grab.model.is_some()
+        || sandbox.placing.is_some()
+        || sandbox.joining.is_some()
+    {
         return;
     }
     let entity = press.entity;
@@ -549,6 +571,49 @@ fn apply_display(
     }
 }
 
+const JOINING_HELP: &str = "New joint: click a point on one part, then a point on another: \
+the joint holds them together (model::joint). Esc cancels.";
+
+/// Making a joint: each click on a model while joining picks the node nearest the hit as one
+/// end; the second end, on another model, makes the [`PartJoint`] (a child of the scene, so
+/// saving the scene keeps it).
+fn pick_joint_end(
+    press: On<Pointer<Press>>,
+    mut sandbox: ResMut<Sandbox>,
+    models: Query<(&FemMesh, &Scratch)>,
+    mut commands: Commands,
+) {
+    if press.button != PointerButton::Primary {
+        return;
+    }
+    let Some(ends) = sandbox.joining.as_mut() else {
+        return;
+    };
+    let entity = press.entity;
+    let Ok((fem, scratch)) = models.get(entity) else {
+        return;
+    };
+    let (Some(tess), Some(hit)) = (fem.get(), press.hit.position) else {
+        return;
+    };
+    let Some(end) = JointEnd::nearest(tess, scratch.node_positions(), hit.as_dvec3()) else {
+        return;
+    };
+    if ends.first().is_some_and(|(e, _)| *e == entity) {
+        sandbox.message = "New joint: the second end must be on another part.".into();
+        return;
+    }
+    ends.push((entity, end));
+    if let [(a, end_a), (b, end_b)] = ends[..] {
+        let mut joint = commands.spawn((Name::new("joint"), PartJoint::new(a, end_a, b, end_b)));
+        if let Some(root) = sandbox.root {
+            joint.insert(ChildOf(root));
+        }
+        sandbox.joining = None;
+        sandbox.message = "Joint made: drag either part and the other follows.".into();
+    }
+}
+
 const PLACING_HELP: &str = "New part: click both ends of its major axis, then both ends of its \
 minor axis, on the ground (y = 0) or on the image plane (z = 0) when the scene has an image. Esc cancels.";
 
@@ -638,7 +703,7 @@ fn demo_drag(
     mut buttons: MessageWriter<bevy::input::mouse::MouseButtonInput>,
     mut events: MessageWriter<bevy::window::WindowEvent>,
 ) {
-    let Some((name, rigid)) = parts.iter().find(|(n, _)| n.as_str() == "cylinder") else {
+    let Some((name, rigid)) = parts.iter().find(|(n, _)| n.as_str() == sandbox.demo_part) else {
         return;
     };
     if sandbox.sim_steps < 20 {
@@ -778,10 +843,16 @@ fn inspector(
                     sandbox.pending = Some(Action::SaveScene);
                 }
             });
-            if ui.button("New part (4 clicks)").clicked() {
-                sandbox.placing = Some(Vec::new());
-                sandbox.message = PLACING_HELP.into();
-            }
+            ui.horizontal(|ui| {
+                if ui.button("New part (4 clicks)").clicked() {
+                    sandbox.placing = Some(Vec::new());
+                    sandbox.message = PLACING_HELP.into();
+                }
+                if ui.button("New joint (2 clicks)").clicked() {
+                    sandbox.joining = Some(Vec::new());
+                    sandbox.message = JOINING_HELP.into();
+                }
+            });
             for i in &instances {
                 if let Some(e) = &i.error {
                     ui.colored_label(egui::Color32::LIGHT_RED, e);
@@ -919,7 +990,10 @@ fn inspector(
             );
             ui.add(edit_slider(&mut s.reassign_every, 1..=1000).text("reassign every"));
             ui.checkbox(&mut s.global_only, "global only");
-            ui.checkbox(&mut s.fix_epsilon, "fix ε");
+            ui.horizontal(|ui| {
+                ui.checkbox(&mut s.fix_epsilon, "fix ε");
+                ui.checkbox(&mut s.fix_shape, "fix shape (rigid)");
+            });
             ui.horizontal(|ui| {
                 ui.checkbox(&mut s.taper, "free taper");
                 ui.checkbox(&mut s.bend, "free bend");

@@ -1,8 +1,8 @@
 //! [`DeformableSqDebugPlugin`] (feature `debug_render`): gizmos for what pulls on each model —
 //! its range data points, the spring from each point to its point of influence on the surface,
-//! and user springs. Separate from the simulation, like avian's debug rendering.
+//! user springs, and the joints between models. Separate from the simulation, like avian's debug rendering.
 
-use crate::plugin::{FemMesh, RangeData, Scratch, SpringForces};
+use crate::plugin::{FemMesh, PartJoint, RangeData, Scratch, SpringForces};
 use bevy::prelude::*;
 
 /// What the debug gizmos draw.
@@ -15,6 +15,8 @@ pub struct DebugRenderConfig {
     pub data_springs: bool,
     /// Draw user springs (mouse springs).
     pub user_springs: bool,
+    /// Draw each joint: a small sphere at each end and the gap between them.
+    pub joints: bool,
     /// Half size of a data point's cross, in world units.
     pub point_size: f32,
 }
@@ -25,12 +27,13 @@ impl Default for DebugRenderConfig {
             points: true,
             data_springs: true,
             user_springs: true,
+            joints: true,
             point_size: 0.01,
         }
     }
 }
 
-/// Draws range data, data springs and user springs with gizmos.
+/// Draws range data, data springs, user springs and joints with gizmos.
 pub struct DeformableSqDebugPlugin;
 
 impl Plugin for DeformableSqDebugPlugin {
@@ -51,6 +54,7 @@ pub fn draw_debug(
         Option<&RangeData>,
         Option<&SpringForces>,
     )>,
+    joints: Query<&PartJoint>,
 ) {
     let point_colour = Color::srgb(0.95, 0.95, 0.2);
     let spring_colour = Color::srgba(0.9, 0.9, 0.9, 0.5);
@@ -83,6 +87,24 @@ pub fn draw_debug(
                 let at = tess.locate(s.u, s.v).interpolate(|k| x[k]);
                 gizmos.line(at.as_vec3(), s.anchor.as_vec3(), user_colour);
             }
+        }
+    }
+    if config.joints {
+        let joint_colour = Color::srgb(0.2, 0.9, 0.9);
+        for j in &joints {
+            let end = |e: Entity, at: crate::model::joint::JointEnd| {
+                let (fem, scratch, ..) = models.get(e).ok()?;
+                let tess = fem.get()?;
+                let x = scratch.node_positions();
+                (x.len() == tess.node_count()).then(|| at.position(tess, x).as_vec3())
+            };
+            let (Some(a), Some(b)) = (end(j.a, j.joint.a), end(j.b, j.joint.b)) else {
+                continue;
+            };
+            let radius = 4.0 * config.point_size;
+            gizmos.sphere(Isometry3d::from_translation(a), radius, joint_colour);
+            gizmos.sphere(Isometry3d::from_translation(b), radius, joint_colour);
+            gizmos.line(a, b, joint_colour);
         }
     }
 }

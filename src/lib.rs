@@ -36,7 +36,8 @@ pub mod prelude {
     };
     pub use crate::plugin::{
         DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, ImageData, Inertia,
-        LocalDofs, ModelSettings, RangeData, RigidState, SimControl, Spring, SpringForces,
+        LocalDofs, ModelSettings, PartJoint, RangeData, RigidState, SimControl, Spring,
+        SpringForces,
     };
     pub use crate::render::{ModelColor, ModelMesh};
 }

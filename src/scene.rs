@@ -43,6 +43,7 @@ use crate::model::forces::range::{DEFAULT_COVERAGE, InfluenceMode};
 use crate::model::image_fit::{ImageFitOptions, ImagePartFit, PartAxes, fit_part};
 use crate::model::inertia::InertiaParams;
 use crate::model::init::{InitialPose, initial_pose};
+use crate::model::joint::JointEnd;
 use crate::model::noise::{NOISE_NEIGHBOURS, NoiseEstimate, estimate_noise, stiffness_for_noise};
 use crate::model::parts::{PARTITION_ROUNDS, partition};
 use crate::model::superquadric::{MAX_EPSILON, MIN_EPSILON, SuperquadricParams};
@@ -69,9 +70,31 @@ pub struct SceneDef {
     /// The models.
     #[serde(default)]
     pub parts: Vec<PartDef>,
+    /// Point-to-point joints between parts ([`crate::model::joint`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub joints: Vec<JointDef>,
     /// Where to look from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera: Option<CameraDef>,
+}
+
+/// A joint between two parts' surfaces: `(parts: (0, 1), ends: ((u: 0.0, v: 0.0), (u: 0.0,
+/// v: 3.14159)))`, with an optional stabilising constant (`stiffness`, default
+/// [`crate::plugin::PartJoint::STIFFNESS`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JointDef {
+    /// Indices of the two parts in `parts`.
+    pub parts: [usize; 2],
+    /// The material point (u, v) on each.
+    pub ends: [JointEnd; 2],
+    /// κ, the stabilising spring constant (> 0).
+    #[serde(default = "default_joint_stiffness")]
+    pub stiffness: f64,
+}
+
+fn default_joint_stiffness() -> f64 {
+    crate::plugin::PartJoint::STIFFNESS
 }
 
 /// Where a scene's data come from. Paths are relative to the scene file.
@@ -250,7 +273,7 @@ pub struct PartDef {
     /// `free.taper` / `free.bend` say so.
     #[serde(default, skip_serializing_if = "GlobalDeformation::is_identity")]
     pub deformation: GlobalDeformation,
-    /// Second-order dynamics with mass ([`crate::model::inertia`]): `inertia: (mass_density: 1.0,
+    /// Second-order dynamics with mass ([`crate::model::inertia`]): `inertia: (mass_density: 0.01,
     /// local_inertia: 1.0, damping: 0.5)`; absent: the paper's first-order fitting dynamics.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub inertia: Option<InertiaParams>,
@@ -320,6 +343,10 @@ pub struct Freedoms {
     /// Image-plane motion only, depth ratio held.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub planar: Option<bool>,
+    /// Hold the whole superquadric shape: the part moves as a rigid body (see
+    /// [`crate::plugin::ModelSettings::fix_shape`]).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub fix_shape: bool,
     /// Let the tapering coordinates move ([`crate::model::deform`]; beyond the paper).
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub taper: bool,
@@ -608,6 +635,36 @@ impl SceneDef {
         }
         for (i, part) in self.parts.iter().enumerate() {
             part.validate(file, &format!("parts[{i}]"), &self.data)?;
+        }
+        for (i, joint) in self.joints.iter().enumerate() {
+            let at = |f: &str| format!("joints[{i}].{f}");
+            let [a, b] = joint.parts;
+            if a == b || a >= self.parts.len() || b >= self.parts.len() {
+                return Err(SceneError::at_field(
+                    file,
+                    at("parts"),
+                    format!(
+                        "must name two different parts of the {} in `parts`, found ({a}, {b})",
+                        self.parts.len()
+                    ),
+                ));
+            }
+            for (k, end) in joint.ends.iter().enumerate() {
+                if !(end.u.is_finite()
+                    && end.v.is_finite()
+                    && end.u.abs() <= std::f64::consts::FRAC_PI_2)
+                {
+                    return Err(SceneError::at_field(
+                        file,
+                        at(&format!("ends[{k}]")),
+                        format!(
+                            "u must lie in [-π/2, π/2] and v be finite, found ({}, {})",
+                            end.u, end.v
+                        ),
+                    ));
+                }
+            }
+            check(file, &at("stiffness"), joint.stiffness, 0.0, true)?;
         }
         for (source, group) in self.shared_groups() {
             let auto = |&i: &usize| matches!(self.parts[i].placement, PartPlacement::Auto);
@@ -1085,6 +1142,14 @@ impl PartDef {
 
     /// The part's dynamics parameters (stiffness, Δt, damping, free DOFs).
     pub fn dynamics(&self) -> DynamicsParams {
+        let mut free = FreeDofs {
+            taper: self.free.taper,
+            bend: self.free.bend,
+            ..FreeDofs::with(!self.free.global_only, self.planar(), self.fix_epsilon())
+        };
+        if self.free.fix_shape {
+            free.shape = [false; 6];
+        }
         DynamicsParams {
             w0: self.w0,
             w1: self.w1,
@@ -1094,11 +1159,7 @@ impl PartDef {
                 _ => DynamicsParams::default().gamma_global,
             }),
             gamma_local: self.damping.local,
-            free: FreeDofs {
-                taper: self.free.taper,
-                bend: self.free.bend,
-                ..FreeDofs::with(!self.free.global_only, self.planar(), self.fix_epsilon())
-            },
+            free,
             ..DynamicsParams::default()
         }
     }

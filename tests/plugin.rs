@@ -7,6 +7,7 @@ use bevy::time::TimeUpdateStrategy;
 use bevy_deformable_sq::model::dynamics::{ModelState, NodalForces, Workspace, step};
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::residuals;
+use bevy_deformable_sq::model::joint::JointEnd;
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
@@ -643,4 +644,71 @@ fn a_model_with_inertia_keeps_moving_swings_on_a_spring_and_resets_to_rest() {
 fn pole_of(app: &App, e: Entity) -> DVec3 {
     let (rigid, shape, _, _) = state_of(app, e);
     rigid.translation + rigid.rotation * DVec3::new(0.0, 0.0, shape.a * shape.a3)
+}
+
+#[test]
+fn a_joint_keeps_a_pulled_part_attached_to_another() {
+    // Two balls touching at x = 0, jointed there; a spring pulls the right ball's far side
+    // further right. Without the joint the right ball leaves the left one behind; with it the
+    // joint's ends stay together (the right ball, whose shape has no stiffness, partly stretches
+    // instead of dragging the left one: K_ss = 0, the paper's choice).
+    let end_a = JointEnd { u: 0.0, v: 0.0 };
+    let end_b = JointEnd {
+        u: 0.0,
+        v: std::f64::consts::PI,
+    };
+    let run = |jointed: bool| {
+        let mut app = app();
+        let settings = ModelSettings {
+            global_only: true,
+            ..Default::default()
+        };
+        let spawn = |app: &mut App, x: f64| {
+            app.world_mut()
+                .spawn((
+                    GlobalShape {
+                        a: 0.5,
+                        ..start_shape()
+                    },
+                    RigidState {
+                        translation: DVec3::new(x, 0.0, 0.0),
+                        rotation: DQuat::IDENTITY,
+                    },
+                    settings,
+                    FemMesh::new(9),
+                ))
+                .id()
+        };
+        let (left, right) = (spawn(&mut app, -0.5), spawn(&mut app, 0.5));
+        app.world_mut()
+            .entity_mut(right)
+            .insert(SpringForces(vec![Spring {
+                u: 0.0,
+                v: 0.0,
+                anchor: DVec3::new(3.0, 0.0, 0.0),
+                stiffness: 1.0,
+            }]));
+        if jointed {
+            app.world_mut()
+                .spawn(PartJoint::new(left, end_a, right, end_b));
+        }
+        run_steps(&mut app, 300);
+        let tess = Tessellation::new(9);
+        let end = |e, end: JointEnd| {
+            let (rigid, shape, local, _) = state_of(&app, e);
+            let mut x = Vec::new();
+            bevy_deformable_sq::plugin::world_positions(&tess, &rigid, &shape, &local, &mut x);
+            end.position(&tess, &x)
+        };
+        let moved = state_of(&app, right).0.translation.x - 0.5;
+        ((end(right, end_b) - end(left, end_a)).length(), moved)
+    };
+    let (apart, moved) = run(false);
+    assert!(
+        moved > 0.3 && apart > 0.3,
+        "unjointed: ends {apart} apart, moved {moved}"
+    );
+    let (together, moved) = run(true);
+    assert!(moved > 0.3, "the pulled ball moved {moved}");
+    assert!(together < 1e-3, "the joint opened by {together}");
 }

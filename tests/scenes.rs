@@ -989,3 +989,94 @@ fn a_parts_inertia_is_read_spawned_saved_and_checked() {
         assert_names(&e, Some(field), None, "finite number");
     }
 }
+
+#[test]
+fn a_scenes_joints_hold_a_pulled_chain_together_and_are_saved() {
+    // The shipped chain: four links jointed pole to pole. A spring pulls the last link up and
+    // away; the joints spawn between the right parts, keep every gap closed, and the first link
+    // follows. Saving writes the joints back.
+    let mut app = scene_app(&shipped_assets());
+    let root = load(&mut app, "scenes/chain.dsq.ron");
+    let links = parts(&app, root);
+    assert_eq!(links.len(), 4);
+    let mut q = app.world_mut().query::<&PartJoint>();
+    let joints: Vec<PartJoint> = q.iter(app.world()).cloned().collect();
+    assert_eq!(joints.len(), 3);
+    for (i, j) in joints.iter().enumerate() {
+        assert!(
+            links.contains(&j.a) && links.contains(&j.b) && j.a != j.b,
+            "joint {i}"
+        );
+    }
+    let start = app.world().get::<RigidState>(links[0]).unwrap().translation;
+    app.world_mut()
+        .entity_mut(links[3])
+        .insert(SpringForces(vec![Spring {
+            u: std::f64::consts::FRAC_PI_2,
+            v: 0.0,
+            anchor: DVec3::new(3.5, 2.0, 0.0),
+            stiffness: 2.0,
+        }]));
+    for _ in 0..600 {
+        app.world_mut().run_schedule(Step);
+    }
+    let mut q = app.world_mut().query::<&PartJoint>();
+    for j in q.iter(app.world()) {
+        assert!(
+            j.gap.length() < 0.01,
+            "a joint opened by {}",
+            j.gap.length()
+        );
+    }
+    let moved = app.world().get::<RigidState>(links[0]).unwrap().translation - start;
+    assert!(
+        moved.length() > 0.3,
+        "the first link stayed behind: {moved}"
+    );
+    for &e in &links {
+        assert!(!app.world().get::<SimControl>(e).unwrap().frozen);
+    }
+    let dir = scratch("chain");
+    save_scene(
+        app.world(),
+        root,
+        &dir.join("chain.dsq.ron"),
+        &shipped_assets().join("scenes"),
+        false,
+    )
+    .unwrap();
+    let (def, _) = SceneDef::load_file(&dir.join("chain.dsq.ron")).unwrap();
+    assert_eq!(def.joints.len(), 3);
+    assert_eq!(def.joints[0].parts, [0, 1]);
+}
+
+#[test]
+fn a_bad_joint_is_refused_naming_the_field() {
+    let two = format!("{GOOD_PART},\n    {}", GOOD_PART.replace("\"p\"", "\"q\""));
+    for (joints, field, what) in [
+        (
+            "[(parts: (0, 0), ends: ((u: 0.0, v: 0.0), (u: 0.0, v: 0.0)))]",
+            "joints[0].parts",
+            "two different parts",
+        ),
+        (
+            "[(parts: (0, 5), ends: ((u: 0.0, v: 0.0), (u: 0.0, v: 0.0)))]",
+            "joints[0].parts",
+            "found (0, 5)",
+        ),
+        (
+            "[(parts: (0, 1), ends: ((u: 2.0, v: 0.0), (u: 0.0, v: 0.0)))]",
+            "joints[0].ends[0]",
+            "[-π/2, π/2]",
+        ),
+        (
+            "[(parts: (0, 1), ends: ((u: 0.0, v: 0.0), (u: 0.0, v: 0.0)), stiffness: 0.0)]",
+            "joints[0].stiffness",
+            "> 0",
+        ),
+    ] {
+        let text = scene_text(&two, PTS).replace("\n)\n", &format!("\n    joints: {joints},\n)\n"));
+        let e = parse_err(&text);
+        assert_names(&e, Some(field), None, what);
+    }
+}

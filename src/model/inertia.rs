@@ -65,11 +65,13 @@ pub struct InertiaParams {
 }
 
 impl Default for InertiaParams {
-    /// μ = 1, λ = 1, β = 0.5: a pulled model overshoots once or twice and settles within a few
-    /// seconds of simulated time.
+    /// μ = 0.01, λ = 1, β = 0.5. The material area of a whole model is π · 2π ≈ 19.7, so a
+    /// model weighs about 0.2 whatever its size: the sandbox's mouse spring (constant about
+    /// 2 w1 = 0.2) then swings it with a period of a few seconds, and it overshoots once or twice
+    /// before it settles.
     fn default() -> Self {
         Self {
-            mass_density: 1.0,
+            mass_density: 0.01,
             local_inertia: 1.0,
             damping: 0.5,
         }
@@ -261,7 +263,9 @@ fn free_global(free: &FreeDofs) -> [bool; NUM_GLOBAL_VELOCITY] {
 
 /// The accelerations v̇ = (global, local) of `state` moving at `v` under `forces` (eq. 12 in
 /// Kane's form, see the module docs), with the membrane of `params` (w0, w1) and its free DOFs.
-/// Mass-proportional damping is not included.
+/// Mass-proportional damping is not included. With `origin` (the node positions the forces were
+/// computed at), each node's springs are linearised about it, F − κ (x − x⁰), as the
+/// first-order step does: sub-steps then follow stiff springs instead of holding their force.
 pub fn accelerations(
     tess: &Tessellation,
     state: &ModelState,
@@ -269,6 +273,7 @@ pub fn accelerations(
     forces: &NodalForces,
     params: &DynamicsParams,
     inertia: &InertiaParams,
+    origin: Option<&[DVec3]>,
 ) -> Result<([f64; NUM_GLOBAL_VELOCITY], Vec<DVec3>), StepError> {
     let n = tess.node_count();
     let rot = rotation_matrix(state.rotation);
@@ -291,8 +296,11 @@ pub fn accelerations(
         // ρ = m / (m + m_d) with the local coordinates free; 0 when they are held.
         let rho = if local { 1.0 / (1.0 + lambda) } else { 0.0 };
         let a = velocity_product(&rot, v, i, k);
-        let f = forces.force[i];
-        let f_global = forces.shape_force[i];
+        let moved = origin
+            .and_then(|x0| x0.get(i))
+            .map_or(DVec3::ZERO, |x0| state.translation + k.r - *x0);
+        let f = forces.force[i] - forces.stiffness[i] * moved;
+        let f_global = forces.shape_force[i] - forces.shape_stiffness[i] * moved;
         let mut cols = [DVec3::ZERO; NUM_GLOBAL_VELOCITY];
         cols[0] = DVec3::X;
         cols[1] = DVec3::Y;
@@ -408,8 +416,10 @@ fn for_each_node_velocity(
     });
 }
 
-/// The stability bound on h of the explicit step: 2 / ω_max with ω_max² the Gershgorin bound of
-/// the membrane and the springs over the lightest effective node mass m λ / (1 + λ).
+/// The stability bound on h of the explicit step: 2 / ω_max, with ω_max² the larger of the
+/// local bound — Gershgorin's on the membrane and the node's springs over its lightest effective
+/// mass m λ / (1 + λ) — and the global one, four times all the springs over the model's mass
+/// (the factor covers the lever arm of a turn).
 fn critical_step(
     tess: &Tessellation,
     forces: &NodalForces,
@@ -427,12 +437,20 @@ fn critical_step(
     } else {
         1.0
     };
-    let omega2 = (0..tess.node_count())
-        .map(|i| {
-            let m = inertia.mass_density * tess.node_area[i] * share;
-            (rows[i] + forces.stiffness[i] + forces.shape_stiffness[i]) / m
-        })
-        .fold(0.0, f64::max);
+    let local = if params.free.local {
+        (0..tess.node_count())
+            .map(|i| {
+                let m = inertia.mass_density * tess.node_area[i] * share;
+                (rows[i] + forces.stiffness[i]) / m
+            })
+            .fold(0.0, f64::max)
+    } else {
+        0.0
+    };
+    let mass = inertia.mass_density * tess.node_area.iter().sum::<f64>();
+    let springs: f64 =
+        forces.stiffness.iter().sum::<f64>() + forces.shape_stiffness.iter().sum::<f64>();
+    let omega2 = local.max(4.0 * springs / mass);
     if omega2 > 0.0 {
         2.0 / omega2.sqrt()
     } else {
@@ -441,7 +459,7 @@ fn critical_step(
 }
 
 /// One step of Δt = `params.dt` of the second-order dynamics (module docs): symplectic Euler,
-/// sub-stepped within half the stability bound. On error `state` and `v` are untouched.
+/// sub-stepped within a quarter of the stability bound. On error `state` and `v` are untouched.
 pub fn step(
     tess: &Tessellation,
     state: &mut ModelState,
@@ -459,7 +477,9 @@ pub fn step(
         return Err(StepError::NonFinite("inertia parameters (μ, λ > 0, β ≥ 0)"));
     }
     let dt_critical = critical_step(tess, forces, params, inertia);
-    let safe = 0.5 * dt_critical;
+    // A quarter of the bound (ω h ≤ ½): symplectic Euler is stable to ω h < 2, but its energy
+    // wobbles by O(ω h), and a stiff spring should not pump a visible swing.
+    let safe = 0.25 * dt_critical;
     let mut substeps = if params.dt <= safe {
         1
     } else {
@@ -472,11 +492,21 @@ pub fn step(
         h = safe;
         clamped = true;
     }
+    let mut origin = Vec::new();
+    state.node_positions(tess, &mut origin);
     let mut new_state = state.clone();
     let mut new_v = v.clone();
     new_v.local.resize(n, DVec3::ZERO);
     for _ in 0..substeps {
-        let (g_acc, d_acc) = accelerations(tess, &new_state, &new_v, forces, params, inertia)?;
+        let (g_acc, d_acc) = accelerations(
+            tess,
+            &new_state,
+            &new_v,
+            forces,
+            params,
+            inertia,
+            Some(&origin),
+        )?;
         let decay = 1.0 / (1.0 + h * inertia.damping);
         let mut g = new_v.global();
         for x in 0..NUM_GLOBAL_VELOCITY {
@@ -713,7 +743,7 @@ mod tests {
             .map(|a| a * inertia.mass_density)
             .collect();
         let mass: f64 = masses.iter().sum();
-        let (g, d) = accelerations(&tess, &s, &v, &forces, &params, &inertia).unwrap();
+        let (g, d) = accelerations(&tess, &s, &v, &forces, &params, &inertia, None).unwrap();
         let mut total = DVec3::ZERO;
         let rot = rotation_matrix(s.rotation);
         let at_rest = Velocity::zero(tess.node_count());
@@ -799,12 +829,12 @@ mod tests {
             forces.stiffness[node] = 4.0;
             step(&tess, &mut s, &mut v, &forces, &params, &inertia).expect("finite");
             let (e, at) = total(&s, &v);
-            // Energy falls but for the explicit spring's O(h) wobble.
-            assert!(
-                e <= last + 1e-3 * first,
-                "step {k}: energy rose {last} -> {e}"
-            );
-            last = e;
+            // Energy falls from second to second (within a swing it wobbles by the step's O(ω h):
+            // the node's spring is stiff against its light mass).
+            if k % 100 == 99 {
+                assert!(e < last, "step {k}: energy rose {last} -> {e}");
+                last = e;
+            }
             let d = (at - anchor).length();
             closest = closest.min(d);
             swing_back = swing_back.max(d - closest);

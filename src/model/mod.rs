@@ -18,6 +18,7 @@ pub mod frame;
 pub mod image_fit;
 pub mod inertia;
 pub mod init;
+pub mod joint;
 pub mod linalg;
 pub mod noise;
 pub mod parts;

@@ -12,7 +12,8 @@ use crate::model::fem::Tessellation;
 use crate::model::fit::{FitOptions, Stage, StageClock};
 use crate::model::forces::range::{InfluenceMode, RangeForces};
 use crate::model::inertia::{InertiaParams, Velocity};
-use crate::model::superquadric::SuperquadricParams;
+use crate::model::joint::{Joint, JointEnd};
+use crate::model::superquadric::{NUM_SHAPE, SuperquadricParams};
 use bevy::math::{DQuat, DVec3};
 use bevy::prelude::*;
 use std::sync::Arc;
@@ -206,6 +207,12 @@ pub struct ModelSettings {
     pub hold_local_steps: u64,
     /// Freeze ε1 and ε2 (the paper's image experiments).
     pub fix_epsilon: bool,
+    /// Freeze the whole superquadric shape (a, a1..a3, ε1, ε2): the model moves as a rigid
+    /// body (with its membrane unless `global_only`), e.g. the links of a jointed figure. The
+    /// paper's shape has no stiffness (K_ss = 0), so a free one pulled by a spring or a joint
+    /// stretches instead of moving.
+    #[cfg_attr(feature = "serialize", serde(default))]
+    pub fix_shape: bool,
     /// Image-plane motion only, with the depth ratio a2 held (see
     /// [`FreeDofs::planar`](crate::model::dynamics::FreeDofs::planar)): for parts fitted to an
     /// image.
@@ -246,6 +253,7 @@ impl ModelSettings {
             global_only: !d.free.local,
             hold_local_steps: 0,
             fix_epsilon: !(d.free.shape[4] || d.free.shape[5]),
+            fix_shape: !d.free.shape.iter().any(|&f| f),
             planar: d.free.planar,
             taper: d.free.taper,
             bend: d.free.bend,
@@ -261,17 +269,21 @@ impl ModelSettings {
 
     /// The core's dynamics parameters.
     pub fn dynamics(&self) -> DynamicsParams {
+        let mut free = FreeDofs {
+            taper: self.taper,
+            bend: self.bend,
+            ..FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon)
+        };
+        if self.fix_shape {
+            free.shape = [false; NUM_SHAPE];
+        }
         DynamicsParams {
             w0: self.w0,
             w1: self.w1,
             dt: self.dt,
             gamma_global: self.gamma_global,
             gamma_local: self.gamma_local,
-            free: FreeDofs {
-                taper: self.taper,
-                bend: self.bend,
-                ..FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon)
-            },
+            free,
             ..DynamicsParams::default()
         }
     }
@@ -304,6 +316,40 @@ impl Inertia {
             velocity: Velocity::default(),
         }
     }
+}
+
+/// A point-to-point joint between the surfaces of two models ([`crate::model::joint`]): put it
+/// on an entity of its own. Each step it adds its constraint force (multiplier plus stabilising
+/// spring) to both models' global coordinates; `joint.multiplier` is the force it transmits to
+/// `a`, and `gap` the distance between its ends at the last step. A joint whose models are gone
+/// or not yet tessellated does nothing.
+#[derive(Component, Clone, Debug, PartialEq)]
+pub struct PartJoint {
+    /// Model a.
+    pub a: Entity,
+    /// Model b.
+    pub b: Entity,
+    /// The ends, the stabilising constant and the multiplier.
+    pub joint: Joint,
+    /// x_b − x_a at the last step.
+    pub gap: DVec3,
+}
+
+impl PartJoint {
+    /// A joint between `a` at `end_a` and `b` at `end_b`, with the default constant
+    /// ([`PartJoint::STIFFNESS`]).
+    pub fn new(a: Entity, end_a: JointEnd, b: Entity, end_b: JointEnd) -> Self {
+        Self {
+            a,
+            b,
+            joint: Joint::new(end_a, end_b, Self::STIFFNESS),
+            gap: DVec3::ZERO,
+        }
+    }
+
+    /// The default stabilising constant κ: ten times the range springs' β per unit area, so that
+    /// a joint outweighs a part's data while the multiplier builds up.
+    pub const STIFFNESS: f64 = 40.0;
 }
 
 /// Pause, single-step and reset, and what the simulation did.

@@ -25,7 +25,8 @@ pub enum DeformableSqSystems {
     Prepare,
     /// Reattach range points to their nearest nodes every `reassign_every` steps (section VI-B).
     Reassign,
-    /// Turn data and user springs into nodal forces (eq. 22).
+    /// Turn data and user springs into nodal forces (eq. 22), then add the joints' constraint
+    /// forces ([`PartJoint`]).
     GatherForces,
     /// One explicit Euler step of C q̇ + K q = f_q (eq. 15).
     Integrate,
@@ -86,7 +87,9 @@ impl Plugin for DeformableSqPlugin {
                 (
                     systems::prepare.in_set(Prepare),
                     systems::reassign.in_set(Reassign),
-                    systems::gather_forces.in_set(GatherForces),
+                    (systems::gather_forces, systems::joint_forces)
+                        .chain()
+                        .in_set(GatherForces),
                     systems::integrate.in_set(Integrate),
                     systems::drive_fits.in_set(Converge),
                     systems::write_transforms.in_set(WriteBack),

@@ -18,14 +18,14 @@
 //! ```
 
 use super::{
-    FemMesh, FitDriver, GlobalShape, ImageData, Inertia, LocalDofs, ModelSettings, RangeData,
-    RigidState,
+    FemMesh, FitDriver, GlobalShape, ImageData, Inertia, LocalDofs, ModelSettings, PartJoint,
+    RangeData, RigidState,
 };
 use crate::model::dynamics::ModelState;
 use crate::model::fit::{Normalization, Stage, global_stages, has_joint_stage};
 use crate::model::forces::range::RangeForces;
 use crate::render::{ModelColor, PALETTE};
-use crate::scene::{Forces, PartDef, SCENE_EXTENSION, SceneData, SceneDef, SceneError};
+use crate::scene::{Forces, JointDef, PartDef, SCENE_EXTENSION, SceneData, SceneDef, SceneError};
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext, LoadState};
 use bevy::math::DVec3;
@@ -159,6 +159,7 @@ pub fn part_settings(part: &PartDef) -> ModelSettings {
         global_only: part.free.global_only,
         hold_local_steps: 0,
         fix_epsilon: part.fix_epsilon(),
+        fix_shape: part.free.fix_shape,
         planar: part.planar(),
         taper: part.free.taper,
         bend: part.free.bend,
@@ -292,9 +293,19 @@ pub fn spawn_scenes(
                     .id()
             })
             .collect();
-        instance.parts = (0..scene.def.parts.len())
-            .filter_map(|i| spawn_part(&mut commands, root, scene, i))
+        let spawned: Vec<Option<Entity>> = (0..scene.def.parts.len())
+            .map(|i| spawn_part(&mut commands, root, scene, i))
             .collect();
+        for def in &scene.def.joints {
+            if let (Some(&Some(a)), Some(&Some(b))) =
+                (spawned.get(def.parts[0]), spawned.get(def.parts[1]))
+            {
+                let mut joint = PartJoint::new(a, def.ends[0], b, def.ends[1]);
+                joint.joint.stiffness = def.stiffness;
+                commands.spawn((Name::new("joint"), joint, ChildOf(root)));
+            }
+        }
+        instance.parts = spawned.into_iter().flatten().collect();
         instance.spawned = Some(id);
         instance.error = None;
         if let Some(c) = &scene.def.camera {
@@ -329,7 +340,8 @@ pub fn scene_from_world(
         .get::<Children>(root)
         .map(|c| c.iter().collect())
         .unwrap_or_default();
-    for e in children {
+    let mut index_of = HashMap::new();
+    for &e in &children {
         let (Some(rigid), Some(shape), Some(local), Some(fem), Some(s)) = (
             world.get::<RigidState>(e),
             world.get::<GlobalShape>(e),
@@ -351,6 +363,7 @@ pub fn scene_from_world(
                 def.parts.len() - 1
             }
         };
+        index_of.insert(e, index);
         let Some(part) = def.parts.get_mut(index) else {
             continue;
         };
@@ -368,6 +381,7 @@ pub fn scene_from_world(
         if s.planar != part.planar() {
             part.free.planar = Some(s.planar);
         }
+        part.free.fix_shape = s.fix_shape;
         part.free.taper = s.taper;
         part.free.bend = s.bend;
         part.inertia = world.get::<Inertia>(e).map(|i| i.params);
@@ -381,6 +395,18 @@ pub fn scene_from_world(
         let sized = local.displacement.len() == fem.k * fem.k + 2;
         def.set_state(index, &state, include_local && sized);
     }
+    // The joints as they are now: those between two of the scene's models.
+    def.joints = children
+        .iter()
+        .filter_map(|&e| world.get::<PartJoint>(e))
+        .filter_map(|j| {
+            Some(JointDef {
+                parts: [*index_of.get(&j.a)?, *index_of.get(&j.b)?],
+                ends: [j.joint.a, j.joint.b],
+                stiffness: j.joint.stiffness,
+            })
+        })
+        .collect();
     Ok(def)
 }
 

@@ -7,6 +7,7 @@ use crate::model::dynamics::step;
 use crate::model::fit::{Stage, StageClock, max_motion};
 use crate::model::forces::range::Robust;
 use crate::model::inertia::{self, Velocity};
+use crate::model::joint::{MULTIPLIER_RATE, inertial_multiplier_rate};
 use crate::model::superquadric::SuperquadricParams;
 use bevy::math::DVec3;
 use bevy::prelude::*;
@@ -218,6 +219,58 @@ pub fn gather_forces(
             }
         },
     );
+}
+
+/// Stage `GatherForces`, after the models' own forces: each [`PartJoint`] adds its constraint
+/// force to its two models when either steps this run (the forces act on the global coordinates
+/// only).
+pub fn joint_forces(
+    mut joints: Query<&mut PartJoint>,
+    mut models: Query<(
+        &FemMesh,
+        &SimControl,
+        &mut Scratch,
+        &ModelSettings,
+        Option<&Inertia>,
+    )>,
+) {
+    for mut pj in &mut joints {
+        let pj = &mut *pj;
+        if pj.a == pj.b {
+            continue;
+        }
+        let Ok(
+            [
+                (fem_a, control_a, mut a, settings_a, inertia_a),
+                (fem_b, control_b, mut b, settings_b, inertia_b),
+            ],
+        ) = models.get_many_mut([pj.a, pj.b])
+        else {
+            continue;
+        };
+        // With mass on either side, the multiplier's rate that keeps it stable (the slower).
+        let rate = [(inertia_a, settings_a), (inertia_b, settings_b)]
+            .iter()
+            .filter_map(|(i, s)| i.map(|i| inertial_multiplier_rate(i.params.damping, s.dt)))
+            .fold(MULTIPLIER_RATE, f64::min);
+        let (Some(tess_a), Some(tess_b)) = (fem_a.get(), fem_b.get()) else {
+            continue;
+        };
+        let (a, b) = (&mut *a, &mut *b);
+        // A paused model holds still, its nodes where its last step left them: it anchors the
+        // other.
+        if !(stepping(control_a) || stepping(control_b))
+            || a.node_x.len() != tess_a.node_count()
+            || b.node_x.len() != tess_b.node_count()
+        {
+            continue;
+        }
+        pj.gap = pj.joint.apply(
+            rate,
+            (tess_a, &a.node_x, &mut a.forces),
+            (tess_b, &b.node_x, &mut b.forces),
+        );
+    }
 }
 
 /// Stage `Integrate`: one explicit Euler step (eq. 15) per model, or one step of the
