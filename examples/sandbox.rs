@@ -806,6 +806,7 @@ fn inspector(
     mut scene_images: Query<&mut SceneImage>,
     mut commands: Commands,
     mut saved_beta: Local<std::collections::HashMap<Entity, f64>>,
+    joints: Query<(Entity, &PartJoint)>,
 ) -> Result {
     let ctx = contexts.ctx_mut()?;
     let sandbox = &mut *sandbox;
@@ -940,6 +941,25 @@ fn inspector(
                         sandbox.selected = Some(e);
                         sandbox.residual.clear();
                     }
+                }
+            }
+            if !joints.is_empty() {
+                ui.separator();
+                ui.label("Joints (gap, force carried)");
+                for (e, j) in &joints {
+                    let name = |m: Entity| names.get(m).map(|n| n.to_string()).unwrap_or_default();
+                    ui.horizontal(|ui| {
+                        ui.label(format!(
+                            "{} ↔ {}: {:.1e}, {:.2}",
+                            name(j.a),
+                            name(j.b),
+                            j.gap.length(),
+                            j.joint.multiplier.length()
+                        ));
+                        if ui.small_button("remove").clicked() {
+                            commands.entity(e).despawn();
+                        }
+                    });
                 }
             }
             let Some(sel) = sandbox.selected else { return };
