@@ -170,6 +170,28 @@ mod tests {
     }
 
     #[test]
+    fn an_end_picked_near_a_point_sits_on_the_nearest_node() {
+        // How the sandbox makes a joint end from a click: the node nearest the hit, whose
+        // position the end then follows as the model moves.
+        let tess = Tessellation::new(9);
+        let mut state = ball(&tess, DVec3::new(1.0, 2.0, 3.0));
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        let hit = DVec3::new(1.0, 2.0, 3.0) + DVec3::new(0.1, 0.45, 0.2).normalize() * 0.52;
+        let end = JointEnd::nearest(&tess, &x, hit).expect("a node");
+        let nearest = x
+            .iter()
+            .copied()
+            .min_by(|a, b| a.distance(hit).total_cmp(&b.distance(hit)))
+            .unwrap();
+        assert!((end.position(&tess, &x) - nearest).length() < 1e-12);
+        state.translation += DVec3::X;
+        state.node_positions(&tess, &mut x);
+        assert!((end.position(&tess, &x) - (nearest + DVec3::X)).length() < 1e-12);
+        assert!(JointEnd::nearest(&tess, &[], hit).is_none());
+    }
+
+    #[test]
     fn a_joint_holds_two_parts_together_against_their_data() {
         // Two balls, each fitted (global only) to its own cloud; the clouds are 1.6 apart, so
         // each part's data pulls it away from the joint between a's +x pole region and b's −x.
