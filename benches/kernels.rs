@@ -13,7 +13,9 @@ use bevy_deformable_sq::model::fit::{FitOptions, fit};
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::forces::range::{InfluenceMode, RangeForces, nearest_indices};
 use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment};
-use bevy_deformable_sq::model::inertia::{InertiaParams, Velocity, step as inertia_step};
+use bevy_deformable_sq::model::inertia::{
+    InertiaParams, InertiaWorkspace, Velocity, step as inertia_step,
+};
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
@@ -284,11 +286,13 @@ fn beyond_the_paper_step(c: &mut Criterion) {
         let inertia = InertiaParams::default();
         let mut s = state.clone();
         let mut v = Velocity::zero(tess.node_count());
+        let mut iws = InertiaWorkspace::default();
         g.bench_with_input(BenchmarkId::new("second_order", &label), &(), |b, _| {
             b.iter(|| {
                 forces.clear(tess.node_count());
                 range.accumulate(&tess, ws.prepare(&tess, &s), &mut forces);
-                inertia_step(&tess, &mut s, &mut v, &forces, &params, &inertia).expect("finite");
+                inertia_step(&tess, &mut s, &mut v, &forces, &params, &inertia, &mut iws)
+                    .expect("finite");
                 if s.displacement[0].length() > 1.0 {
                     s = state.clone();
                     v = Velocity::zero(tess.node_count());

@@ -1142,14 +1142,9 @@ impl PartDef {
 
     /// The part's dynamics parameters (stiffness, Δt, damping, free DOFs).
     pub fn dynamics(&self) -> DynamicsParams {
-        let mut free = FreeDofs {
-            taper: self.free.taper,
-            bend: self.free.bend,
-            ..FreeDofs::with(!self.free.global_only, self.planar(), self.fix_epsilon())
-        };
-        if self.free.fix_shape {
-            free.shape = [false; 6];
-        }
+        let f = &self.free;
+        let free = FreeDofs::with(!f.global_only, self.planar(), self.fix_epsilon())
+            .beyond_the_paper(f.fix_shape, f.taper, f.bend);
         DynamicsParams {
             w0: self.w0,
             w1: self.w1,

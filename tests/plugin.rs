@@ -654,6 +654,18 @@ fn a_model_with_inertia_keeps_moving_swings_on_a_spring_and_resets_to_rest() {
     app.update();
     let v = &app.world().get::<Inertia>(coasting).unwrap().velocity;
     assert!(v.linear.length() < 1e-12, "after reset {v:?}");
+    // A new mesh starts the model at rest too: the old nodes' rates mean nothing on it.
+    app.world_mut()
+        .get_mut::<Inertia>(coasting)
+        .unwrap()
+        .velocity
+        .linear = DVec3::X;
+    app.world_mut().get_mut::<FemMesh>(coasting).unwrap().k = 7;
+    app.update();
+    app.update();
+    let v = &app.world().get::<Inertia>(coasting).unwrap().velocity;
+    assert_eq!(v.local.len(), 7 * 7 + 2);
+    assert!(v.linear.length() < 1e-12, "after re-tessellation {v:?}");
 }
 
 /// The north pole of a global-only model: c + R (0, 0, a·a3).

@@ -312,6 +312,17 @@ impl FreeDofs {
             ..Self::default()
         }
     }
+
+    /// These freedoms with the switches beyond the paper: `fix_shape` holds all of q_s (a rigid
+    /// superquadric), `taper` and `bend` free q_T ([`super::deform`]).
+    pub fn beyond_the_paper(mut self, fix_shape: bool, taper: bool, bend: bool) -> Self {
+        if fix_shape {
+            self.shape = [false; NUM_SHAPE];
+        }
+        self.taper = taper;
+        self.bend = bend;
+        self
+    }
 }
 
 /// Physical and numerical parameters of the first-order dynamics.
@@ -370,12 +381,15 @@ pub struct StepReport {
 pub enum StepError {
     /// A force or the computed update was not finite; names what.
     NonFinite(&'static str),
+    /// A parameter is out of range; says which and what it must be.
+    Invalid(&'static str),
 }
 
 impl std::fmt::Display for StepError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             StepError::NonFinite(what) => write!(f, "non-finite {what}; the step was not applied"),
+            StepError::Invalid(what) => write!(f, "{what}; the step was not applied"),
         }
     }
 }

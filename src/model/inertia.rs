@@ -135,10 +135,11 @@ impl Velocity {
 }
 
 /// What one node contributes: its world position r_i relative to c, and the model-frame shape
-/// columns P_i and second derivative D²p_i[q̇_g, q̇_g].
+/// columns P_i, rate P_i q̇_g and second derivative D²p_i[q̇_g, q̇_g].
 struct NodeKinematics {
     r: DVec3,
     p_cols: [DVec3; NUM_SHAPE_VELOCITY],
+    shape_rate: DVec3,
     curvature: DVec3,
 }
 
@@ -156,7 +157,9 @@ fn node_kinematics(
     let rot = rotation_matrix(state.rotation);
     let deformation = state.deformation;
     let deformed = !deformation.is_identity() || v.deformation != [0.0; 4];
-    let shape_rate: [f64; NUM_SHAPE_VELOCITY] = std::array::from_fn(|k| v.global()[6 + k]);
+    let global = v.global();
+    let shape_rate: [f64; NUM_SHAPE_VELOCITY] = std::array::from_fn(|k| global[6 + k]);
+    let deformation_q = deformation.to_array();
     let grid = &*grid;
     tess.for_each_grid_node(|i, ring, lon| {
         let [cu, su] = grid.rings[ring];
@@ -199,7 +202,7 @@ fn node_kinematics(
             let tau = 1e-5;
             let along = |sign: f64| {
                 let moved = GlobalDeformation::from_array(std::array::from_fn(|k| {
-                    deformation.to_array()[k] + sign * tau * v.deformation[k]
+                    deformation_q[k] + sign * tau * v.deformation[k]
                 }));
                 let j = moved.jacobian(s + sign * tau * ds, axes.z + sign * tau * ad.z);
                 j.d_point * ds
@@ -215,11 +218,13 @@ fn node_kinematics(
             cols[..5].copy_from_slice(&s_cols);
             (s + d, cols, d2s)
         };
+        let shape_rate = p_cols.iter().zip(&shape_rate).map(|(c, x)| *x * *c).sum();
         visit(
             i,
             &NodeKinematics {
                 r: rot * p,
                 p_cols,
+                shape_rate,
                 curvature,
             },
         );
@@ -236,13 +241,7 @@ fn velocity_product(rot: &DMat3, v: &Velocity, i: usize, k: &NodeKinematics) -> 
 
 /// u_i = P_i q̇_g + ḋ_i: the node's velocity relative to the model frame, in that frame.
 fn shape_velocity(v: &Velocity, i: usize, k: &NodeKinematics) -> DVec3 {
-    let g = v.global();
-    k.p_cols
-        .iter()
-        .zip(&g[6..])
-        .map(|(c, x)| *x * *c)
-        .sum::<DVec3>()
-        + v.local_at(i)
+    k.shape_rate + v.local_at(i)
 }
 
 /// Which global velocity coordinates move under `free`.
@@ -275,23 +274,94 @@ pub fn accelerations(
     inertia: &InertiaParams,
     origin: Option<&[DVec3]>,
 ) -> Result<([f64; NUM_GLOBAL_VELOCITY], Vec<DVec3>), StepError> {
+    let mut buffers = AccelerationBuffers::default();
+    let global = accelerations_in(
+        &mut buffers,
+        tess,
+        state,
+        v,
+        forces,
+        params,
+        inertia,
+        origin,
+    )?;
+    Ok((global, buffers.d_acc))
+}
+
+/// Reusable buffers for [`step`], and the membrane's row bounds cached by (w0, w1, mesh), so that a
+/// step allocates nothing after the first and recomputes only what changed.
+#[derive(Clone, Debug, Default)]
+pub struct InertiaWorkspace {
+    /// The node positions at the step's start, about which the springs are linearised.
+    origin: Vec<DVec3>,
+    rows: Vec<f64>,
+    rows_key: Option<(f64, f64, usize)>,
+    acc: AccelerationBuffers,
+}
+
+/// The buffers of one evaluation of the accelerations.
+#[derive(Clone, Debug, Default)]
+struct AccelerationBuffers {
+    grid: GridPowers,
+    kd: Vec<DVec3>,
+    /// [Rᵀ(F − m a) − K d] / (m + m_d) per node, model frame.
+    local_rhs: Vec<DVec3>,
+    /// The world columns of L_g,i per node.
+    cols: Vec<[DVec3; NUM_GLOBAL_VELOCITY]>,
+    /// The local accelerations d̈_i.
+    d_acc: Vec<DVec3>,
+}
+
+impl InertiaWorkspace {
+    /// Σ_j |K_ij| per node for (w0, w1), computed when they or the mesh change.
+    fn row_bounds(&mut self, tess: &Tessellation, w0: f64, w1: f64) -> &[f64] {
+        let key = (w0, w1, tess.node_count());
+        if self.rows_key != Some(key) {
+            self.rows = tess.stiffness_row_bounds(w0, w1);
+            self.rows_key = Some(key);
+        }
+        &self.rows
+    }
+}
+
+/// [`accelerations`] into `buffers`: returns the global part, leaves the local one in
+/// `buffers.d_acc`.
+#[allow(clippy::too_many_arguments)]
+fn accelerations_in(
+    buffers: &mut AccelerationBuffers,
+    tess: &Tessellation,
+    state: &ModelState,
+    v: &Velocity,
+    forces: &NodalForces,
+    params: &DynamicsParams,
+    inertia: &InertiaParams,
+    origin: Option<&[DVec3]>,
+) -> Result<[f64; NUM_GLOBAL_VELOCITY], StepError> {
     let n = tess.node_count();
     let rot = rotation_matrix(state.rotation);
     let rt = rot.transpose();
     let local = params.free.local;
-    let mut kd = vec![DVec3::ZERO; n];
+    let AccelerationBuffers {
+        grid,
+        kd,
+        local_rhs,
+        cols: cols_store,
+        d_acc,
+    } = buffers;
+    kd.clear();
+    kd.resize(n, DVec3::ZERO);
     if local {
-        tess.apply_stiffness(params.w0, params.w1, &state.displacement, &mut kd);
+        tess.apply_stiffness(params.w0, params.w1, &state.displacement, kd);
     }
     let lambda = inertia.local_inertia;
     // Per node: the world columns of L_g,i (15), the terms of the global right-hand side, and
     // what the local row needs afterwards.
     let mut s_mat = [[0.0; NUM_GLOBAL_VELOCITY]; NUM_GLOBAL_VELOCITY];
     let mut rhs = [0.0; NUM_GLOBAL_VELOCITY];
-    let mut local_rhs = vec![DVec3::ZERO; n]; // [Rᵀ(F − m a) − K d] / (m + m_d), model frame
-    let mut cols_store: Vec<[DVec3; NUM_GLOBAL_VELOCITY]> = Vec::with_capacity(n);
-    let mut grid = GridPowers::default();
-    node_kinematics(tess, state, v, &mut grid, |i, k| {
+    local_rhs.clear();
+    local_rhs.resize(n, DVec3::ZERO);
+    cols_store.clear();
+    node_kinematics(tess, state, v, grid, |i, k| {
         let m = inertia.mass_density * tess.node_area[i];
         // ρ = m / (m + m_d) with the local coordinates free; 0 when they are held.
         let rho = if local { 1.0 / (1.0 + lambda) } else { 0.0 };
@@ -356,7 +426,8 @@ pub fn accelerations(
     }
     let global =
         cholesky_solve(&s_mat, &rhs).ok_or(StepError::NonFinite("mass matrix M (Schur block)"))?;
-    let mut d_acc = vec![DVec3::ZERO; n];
+    d_acc.clear();
+    d_acc.resize(n, DVec3::ZERO);
     if local {
         let rho = 1.0 / (1.0 + lambda);
         for i in 0..n {
@@ -366,7 +437,7 @@ pub fn accelerations(
             d_acc[i] = local_rhs[i] - rho * (rt * lg);
         }
     }
-    Ok((global, d_acc))
+    Ok(global)
 }
 
 /// The kinetic energy T = ½ Σ m_i |ẋ_i|² + ½ Σ λ m_i |ḋ_i|² of `state` moving at `v`.
@@ -421,23 +492,15 @@ fn for_each_node_velocity(
 /// mass m λ / (1 + λ) — and the global one, four times all the springs over the model's mass
 /// (the factor covers the lever arm of a turn).
 fn critical_step(
+    ws: &mut InertiaWorkspace,
     tess: &Tessellation,
     forces: &NodalForces,
     params: &DynamicsParams,
     inertia: &InertiaParams,
 ) -> f64 {
-    let rows = if params.free.local {
-        tess.stiffness_row_bounds(params.w0, params.w1)
-    } else {
-        vec![0.0; tess.node_count()]
-    };
-    let lambda = inertia.local_inertia;
-    let share = if params.free.local {
-        lambda / (1.0 + lambda)
-    } else {
-        1.0
-    };
     let local = if params.free.local {
+        let rows = ws.row_bounds(tess, params.w0, params.w1);
+        let share = inertia.local_inertia / (1.0 + inertia.local_inertia);
         (0..tess.node_count())
             .map(|i| {
                 let m = inertia.mass_density * tess.node_area[i] * share;
@@ -460,6 +523,7 @@ fn critical_step(
 
 /// One step of Δt = `params.dt` of the second-order dynamics (module docs): symplectic Euler,
 /// sub-stepped within a quarter of the stability bound. On error `state` and `v` are untouched.
+/// `ws` keeps the buffers from one step to the next (any workspace will do).
 pub fn step(
     tess: &Tessellation,
     state: &mut ModelState,
@@ -467,6 +531,7 @@ pub fn step(
     forces: &NodalForces,
     params: &DynamicsParams,
     inertia: &InertiaParams,
+    ws: &mut InertiaWorkspace,
 ) -> Result<StepReport, StepError> {
     let n = tess.node_count();
     assert!(
@@ -474,9 +539,11 @@ pub fn step(
         "NodalForces sized for another tessellation"
     );
     if !(inertia.mass_density > 0.0 && inertia.local_inertia > 0.0 && inertia.damping >= 0.0) {
-        return Err(StepError::NonFinite("inertia parameters (μ, λ > 0, β ≥ 0)"));
+        return Err(StepError::Invalid(
+            "inertia parameters: μ and λ must be > 0 and β ≥ 0",
+        ));
     }
-    let dt_critical = critical_step(tess, forces, params, inertia);
+    let dt_critical = critical_step(ws, tess, forces, params, inertia);
     // A quarter of the bound (ω h ≤ ½): symplectic Euler is stable to ω h < 2, but its energy
     // wobbles by O(ω h), and a stiff spring should not pump a visible swing.
     let safe = 0.25 * dt_critical;
@@ -492,20 +559,20 @@ pub fn step(
         h = safe;
         clamped = true;
     }
-    let mut origin = Vec::new();
-    state.node_positions(tess, &mut origin);
+    state.node_positions(tess, &mut ws.origin);
     let mut new_state = state.clone();
     let mut new_v = v.clone();
     new_v.local.resize(n, DVec3::ZERO);
     for _ in 0..substeps {
-        let (g_acc, d_acc) = accelerations(
+        let g_acc = accelerations_in(
+            &mut ws.acc,
             tess,
             &new_state,
             &new_v,
             forces,
             params,
             inertia,
-            Some(&origin),
+            Some(&ws.origin),
         )?;
         let decay = 1.0 / (1.0 + h * inertia.damping);
         let mut g = new_v.global();
@@ -514,7 +581,7 @@ pub fn step(
         }
         new_v.set_global(&g);
         if params.free.local {
-            for (dv, a) in new_v.local.iter_mut().zip(&d_acc) {
+            for (dv, a) in new_v.local.iter_mut().zip(&ws.acc.d_acc) {
                 *dv = (*dv + h * *a) * decay;
             }
         } else {
@@ -676,6 +743,7 @@ mod tests {
         };
         let mut s = state(&tess, true);
         let mut v = moving(&tess);
+        let mut ws = InertiaWorkspace::default();
         let forces = NodalForces::new(tess.node_count());
         let energy = |s: &ModelState, v: &Velocity| {
             kinetic_energy(&tess, s, v, &inertia)
@@ -686,7 +754,7 @@ mod tests {
         let mass: f64 = tess.node_area.iter().sum::<f64>() * inertia.mass_density;
         let (mut worst_e, mut worst_p, mut worst_l) = (0.0_f64, 0.0_f64, 0.0_f64);
         for _ in 0..(1.0 / dt).round() as usize {
-            step(&tess, &mut s, &mut v, &forces, &params, &inertia).expect("finite");
+            step(&tess, &mut s, &mut v, &forces, &params, &inertia, &mut ws).expect("finite");
             let (p, l) = momentum(&tess, &s, &v, &inertia);
             worst_e = worst_e.max((energy(&s, &v) - e0).abs() / e0);
             worst_p = worst_p.max((p - p0).length() / (mass * v.linear.length().max(0.1)));
@@ -734,6 +802,7 @@ mod tests {
         };
         let mut s = state(&tess, true);
         let mut v = Velocity::zero(tess.node_count());
+        let mut ws = InertiaWorkspace::default();
         let mut forces = NodalForces::new(tess.node_count());
         let force = DVec3::new(0.7, -0.2, 0.4);
         forces.force[17] = force;
@@ -770,7 +839,7 @@ mod tests {
         let c0 = centre(&s);
         let steps = 300;
         for _ in 0..steps {
-            step(&tess, &mut s, &mut v, &forces, &params, &inertia).unwrap();
+            step(&tess, &mut s, &mut v, &forces, &params, &inertia, &mut ws).unwrap();
         }
         let t = steps as f64 * params.dt;
         let expected = 0.5 * force / mass * t * t;
@@ -803,6 +872,7 @@ mod tests {
             ..state(&tess, false)
         };
         let mut v = Velocity::zero(tess.node_count());
+        let mut ws = InertiaWorkspace::default();
         let anchor = DVec3::new(2.0, 1.0, 0.0);
         let node = 20;
         let total = |s: &ModelState, v: &Velocity| {
@@ -827,7 +897,7 @@ mod tests {
             let mut forces = NodalForces::new(tess.node_count());
             forces.force[node] = 4.0 * (anchor - x[node]);
             forces.stiffness[node] = 4.0;
-            step(&tess, &mut s, &mut v, &forces, &params, &inertia).expect("finite");
+            step(&tess, &mut s, &mut v, &forces, &params, &inertia, &mut ws).expect("finite");
             let (e, at) = total(&s, &v);
             // Energy falls from second to second (within a swing it wobbles by the step's O(ω h):
             // the node's spring is stiff against its light mass).

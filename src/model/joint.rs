@@ -8,11 +8,13 @@
 //! Each step λ ← λ + η κ g, so at equilibrium g = 0 exactly and λ is the force the joint
 //! transmits, whatever else pulls on the parts; while the parts move, κ g closes the gap.
 //!
-//! The force acts on the global coordinates only (it is added as a `shape_force`, with κ in the
-//! global damping weight): a joint holds the parts together as superquadrics and does not raise a
-//! spike in either membrane. With the κ-weighted global damping of `dynamics`, the stabilising
-//! term closes the gap by a Gauss–Newton step, so κ only sets how much the joint weighs against
-//! the parts' data, not the step's stability.
+//! The force acts on the global coordinates only (it is added as a `shape_force`): a joint holds
+//! the parts together as superquadrics and does not raise a spike in either membrane. Each model
+//! is stepped on its own with the other held, so each weighs the joint as a spring of 2κ to the
+//! gap's midpoint (2κ in its global damping weight, and in the springs the second-order step
+//! linearises): each closes half the gap, and the pair closes it without overshooting. With the
+//! κ-weighted global damping of `dynamics` that is a Gauss–Newton step, so κ only sets how much
+//! the joint weighs against the parts' data, not the step's stability.
 
 use super::dynamics::NodalForces;
 use super::fem::Tessellation;
@@ -279,7 +281,9 @@ mod tests {
     /// Two balls with mass, jointed where they touch and pulled apart by constant forces on
     /// their far sides: (largest gap over the last second, whether any step failed).
     fn pulled_apart_with_mass(rate: f64) -> (f64, bool) {
-        use crate::model::inertia::{InertiaParams, Velocity, step as inertia_step};
+        use crate::model::inertia::{
+            InertiaParams, InertiaWorkspace, Velocity, step as inertia_step,
+        };
         let tess = Tessellation::new(7);
         let mut params = DynamicsParams {
             dt: 0.05,
@@ -295,6 +299,7 @@ mod tests {
             ball(&tess, DVec3::new(-0.5, 0.0, 0.0)),
             ball(&tess, DVec3::new(0.5, 0.0, 0.0)),
         ];
+        let mut ws = [InertiaWorkspace::default(), InertiaWorkspace::default()];
         let mut v = [
             Velocity::zero(tess.node_count()),
             Velocity::zero(tess.node_count()),
@@ -331,6 +336,7 @@ mod tests {
                     &forces[p],
                     &params,
                     &inertia,
+                    &mut ws[p],
                 )
                 .is_err()
                 {

@@ -11,9 +11,9 @@ use crate::model::dynamics::{DynamicsParams, FreeDofs, ModelState, NodalForces, 
 use crate::model::fem::Tessellation;
 use crate::model::fit::{FitOptions, Stage, StageClock};
 use crate::model::forces::range::{InfluenceMode, RangeForces};
-use crate::model::inertia::{InertiaParams, Velocity};
+use crate::model::inertia::{InertiaParams, InertiaWorkspace, Velocity};
 use crate::model::joint::{Joint, JointEnd};
-use crate::model::superquadric::{NUM_SHAPE, SuperquadricParams};
+use crate::model::superquadric::SuperquadricParams;
 use bevy::math::{DQuat, DVec3};
 use bevy::prelude::*;
 use std::sync::Arc;
@@ -269,14 +269,8 @@ impl ModelSettings {
 
     /// The core's dynamics parameters.
     pub fn dynamics(&self) -> DynamicsParams {
-        let mut free = FreeDofs {
-            taper: self.taper,
-            bend: self.bend,
-            ..FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon)
-        };
-        if self.fix_shape {
-            free.shape = [false; NUM_SHAPE];
-        }
+        let free = FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon)
+            .beyond_the_paper(self.fix_shape, self.taper, self.bend);
         DynamicsParams {
             w0: self.w0,
             w1: self.w1,
@@ -577,6 +571,7 @@ pub struct Scratch {
     pub(crate) workspace: Workspace,
     pub(crate) node_x: Vec<DVec3>,
     pub(crate) x_new: Vec<DVec3>,
+    pub(crate) inertia_workspace: InertiaWorkspace,
     pub(crate) initial: Option<(RigidState, GlobalShape, LocalDofs)>,
 }
 

@@ -70,6 +70,16 @@ pub fn prepare(
             continue;
         };
         let n = tess.node_count();
+        let mut inertia = inertia;
+        // A velocity sized for another mesh (the model was re-tessellated): the old nodes' rates
+        // mean nothing on the new one, so the model starts again at rest. (An empty one is a
+        // velocity set at spawn, kept.)
+        if let Some(inertia) = inertia.as_mut()
+            && !inertia.velocity.local.is_empty()
+            && inertia.velocity.local.len() != n
+        {
+            inertia.velocity = Velocity::zero(n);
+        }
         if local.displacement.len() != n {
             local.displacement = vec![DVec3::ZERO; n];
             scratch.initial = None;
@@ -82,7 +92,7 @@ pub fn prepare(
                 *shape = s;
                 *local = l;
             }
-            if let Some(mut inertia) = inertia {
+            if let Some(inertia) = inertia.as_mut() {
                 inertia.velocity = Velocity::zero(n);
             }
             if let Some(mut range) = range {
@@ -318,6 +328,7 @@ pub fn integrate(
                         &scratch.forces,
                         &params,
                         &inertia.params,
+                        &mut scratch.inertia_workspace,
                     )
                 }
                 None => step(
