@@ -539,6 +539,9 @@ fn range_summary(
         "a": shape.a, "a1": shape.a1, "a2": shape.a2, "a3": shape.a3,
         "e1": shape.e1, "e2": shape.e2,
         "taper": report.state.deformation.taper, "bend": report.state.deformation.bend,
+        "refine": report.refinement.map(|r| serde_json::json!({
+            "steps": r.steps, "kept": r.kept, "gave_up": r.gave_up,
+        })),
     })
 }
 

@@ -288,6 +288,11 @@ fn robust_fit_recovers_a_partial_noisy_cloud_with_outliers_where_the_papers_spri
         ..Default::default()
     };
     let (p, r) = (errors(plain), errors(plain.robust()));
+    // The refining stage did the work here: it came to rest closer to the points and was kept.
+    let refined = fit(&c.points, &plain.robust(), |_| {}).unwrap();
+    let stage = refined.refinement.expect("the robust options refine");
+    assert!(stage.kept && !stage.gave_up, "{stage:?}");
+    assert!(stage.after < stage.before, "{stage:?}");
     assert!(
         r.axes < 0.02 && r.epsilon < 0.05 && r.translation < 0.02 && r.rotation_deg < 3.0,
         "robust: {r:?}"
@@ -296,4 +301,37 @@ fn robust_fit_recovers_a_partial_noisy_cloud_with_outliers_where_the_papers_spri
         p.axes > 3.0 * r.axes && p.rotation_deg > 10.0,
         "plain: {p:?}"
     );
+}
+
+#[test]
+fn a_refinement_that_runs_off_is_given_up_at_its_first_check_and_undone() {
+    use bevy_deformable_sq::io::load_points;
+    use bevy_deformable_sq::model::fit::{REFINE_CHECK_EVERY, REFINE_GIVE_UP};
+    // The bunny is no superquadric: refined with the outlier weights, the superquadric drops the
+    // ears and head as outliers and runs off along the one-sided distance. The check stops it
+    // at once, and the fit goes on from the global stage's state exactly.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/data/bunny_scan.obj");
+    let points = load_points(&path).expect("the shipped bunny scan");
+    let robust = FitOptions {
+        global_only: true,
+        ..Default::default()
+    }
+    .robust();
+    let refined = fit(&points, &robust, |_| {}).expect("fit");
+    let stage = refined.refinement.expect("the robust options refine");
+    assert!(stage.gave_up && !stage.kept, "{stage:?}");
+    assert!(stage.after > REFINE_GIVE_UP * stage.before, "{stage:?}");
+    assert!(stage.steps <= REFINE_CHECK_EVERY, "{stage:?}");
+    let unrefined = fit(
+        &points,
+        &FitOptions {
+            refine: false,
+            ..robust
+        },
+        |_| {},
+    )
+    .expect("fit");
+    assert!(unrefined.refinement.is_none());
+    assert_eq!(refined.state, unrefined.state);
+    assert_eq!(refined.steps, unrefined.steps + stage.steps);
 }

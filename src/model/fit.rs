@@ -46,6 +46,16 @@ pub const REFINE_RATE: f64 = 1.0;
 /// surface point slides onto the side wall), a minimum of the one-sided distance that is no fit.
 pub const REFINE_MAX_STEPS: u32 = 3000;
 
+/// The refining stage is checked every this many steps ([`REFINE_GIVE_UP`]).
+pub const REFINE_CHECK_EVERY: u32 = 250;
+
+/// A refinement whose mean point-to-surface distance, checked every [`REFINE_CHECK_EVERY`] steps,
+/// exceeds this multiple of the global stage's is given up and undone at once instead of at the
+/// end of its [`REFINE_MAX_STEPS`]: on scans of objects that are no superquadric, the outlier
+/// weights let it drop whole limbs (the bunny's ears) and the one-sided distance keeps falling
+/// while the model runs off.
+pub const REFINE_GIVE_UP: f64 = 1.05;
+
 /// How the first superquadric is placed.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub enum Initialization {
@@ -283,6 +293,27 @@ pub struct FitReport {
     /// Initial pose the loop started from (data frame): the chosen hypothesis, or its
     /// cross-section dual when that fitted closer.
     pub initial: InitialPose,
+    /// How the refining stage went, when the options asked for one ([`FitOptions::refine`]).
+    pub refinement: Option<Refinement>,
+}
+
+/// The outcome of a refining stage ([`FitOptions::refine`], [`Stage::Refine`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Refinement {
+    /// Steps the stage took (counted in [`FitReport::steps`] whether kept or not).
+    pub steps: u32,
+    /// True when the refined superquadric was kept: at rest within [`REFINE_MAX_STEPS`] and no
+    /// farther from the points than the global stage's. Otherwise the fit goes on from the global
+    /// stage's state.
+    pub kept: bool,
+    /// True when the stage was given up early, its mean point-to-surface distance past
+    /// [`REFINE_GIVE_UP`] times the global stage's at a check.
+    pub gave_up: bool,
+    /// Mean point-to-surface distance before and after the stage, in units of the data's RMS
+    /// radius (the fit's working frame).
+    pub before: f64,
+    /// See [`Refinement::before`].
+    pub after: f64,
 }
 
 /// The normalisation that maps data to a centred unit-RMS frame and back.
@@ -562,6 +593,12 @@ struct Relaxation<'a> {
     global_steps: u32,
     substepped: u32,
     reassignments: u32,
+    /// Stop the stage (not at rest) as soon as a check every [`REFINE_CHECK_EVERY`] steps finds
+    /// the mean point-to-surface distance above this: set for the refining stage, which is undone
+    /// when it ends above the global stage's distance anyway.
+    give_up_above: Option<f64>,
+    /// Set when a run stopped at that check.
+    gave_up: bool,
 }
 
 impl<'a> Relaxation<'a> {
@@ -595,6 +632,8 @@ impl<'a> Relaxation<'a> {
             global_steps: 0,
             substepped: 0,
             reassignments: 0,
+            give_up_above: None,
+            gave_up: false,
         }
     }
 
@@ -658,6 +697,13 @@ impl<'a> Relaxation<'a> {
             self.reassignments += reassigned as u32;
             if done {
                 return Ok(true);
+            }
+            if let Some(limit) = self.give_up_above
+                && self.steps.is_multiple_of(REFINE_CHECK_EVERY)
+                && mean_distance(tess, &self.x, &self.range.points) > limit
+            {
+                self.gave_up = true;
+                return Ok(false);
             }
         }
         Ok(false)
@@ -791,13 +837,25 @@ pub fn fit(
     }
     // Steps taken by runs other than `relax` (the other hypotheses, an undone refinement).
     let mut other_steps = steps_used - relax.steps;
+    let mut refinement = None;
     if opts.refine {
         let before = relax.clone();
         let budget = (relax.steps + REFINE_MAX_STEPS).min(opts.max_steps - other_steps);
+        relax.give_up_above = Some(score * REFINE_GIVE_UP);
         let at_rest = relax.run(Stage::Refine, budget, &mut progress)?;
+        relax.give_up_above = None;
         let refined = mean_distance(&tess, &relax.x, &relax.range.points);
-        if !(at_rest && refined <= score) {
-            other_steps += relax.steps - before.steps;
+        let kept = at_rest && refined <= score;
+        let steps = relax.steps - before.steps;
+        refinement = Some(Refinement {
+            steps,
+            kept,
+            gave_up: relax.gave_up,
+            before: score,
+            after: refined,
+        });
+        if !kept {
+            other_steps += steps;
             relax = before;
         }
     }
@@ -818,6 +876,7 @@ pub fn fit(
         residuals,
         initial,
         tess,
+        refinement,
     })
 }
 

@@ -155,6 +155,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         converged: driver.converged,
         substepped_steps: driver.substepped_steps as u32,
         initial: candidates[chosen],
+        refinement: None,
         state,
         tess: (*tess).clone(),
     })
