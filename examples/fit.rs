@@ -4,8 +4,8 @@
 //! cargo run --release --example fit -- (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll)
 //!     [--nodes N | --k K] [--w0 F] [--w1 F|auto] [--beta F] [--max-steps N] [--out-mesh FILE.obj]
 //!     [--out-params FILE.json] [--quiet]
-//!     points only: [--global-only] [--plane] [--outliers F] [--refine] [--switch] [--robust]
-//!                  [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]
+//!     points only: [--global-only] [--paper-forces] [--plane] [--outliers F] [--refine] [--switch]
+//!                  [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]
 //!     images only: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth]
 //!                  [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]
 //!     scenes only: [--out-scene FILE.dsq.ron]
@@ -25,6 +25,10 @@
 //! (every initial hypothesis an entity, simulated in parallel); the result is the same. Progress goes to stderr; the last line
 //! on stdout is a one-line JSON summary. `--robust` is `--outliers 0.2 --plane --refine --switch`
 //! (`FitOptions::robust`): the most accurate pure superquadric on partial or outlier-ridden clouds.
+//! A POINTS file is fitted by default with `--outliers 0.2 --plane --w1 auto`, and with `--robust`
+//! when `--global-only` (without `--app`); `--paper-forces` starts from the paper's springs and
+//! stiffness instead (equal weights, nearest-node springs, w0 = 1e-3, w1 = 0.1), to which the
+//! other flags add. `--outliers`, `--w0` and `--w1` given explicitly are kept.
 //! `--taper` and `--bend` free the global tapering and bending of `model::deform` (beyond the paper)
 //! for curved, tapered objects; the summary then carries `taper` and `bend`.
 //! Bad input exits with code 2 and a one-line message.
@@ -57,7 +61,7 @@ use std::time::Duration;
 use std::time::Instant;
 
 const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F|auto] [--beta F] \
-[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--plane] [--outliers F] [--refine] [--switch] [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]; \
+[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--paper-forces] [--plane] [--outliers F] [--refine] [--switch] [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]; \
 images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]; scenes: [--out-scene FILE.dsq.ron]";
 
 /// Where the data come from.
@@ -78,8 +82,10 @@ struct Args {
     app: bool,
     out_scene: Option<PathBuf>,
     max_steps_override: Option<u32>,
-    /// `--w1 auto`: w0 and w1 from the noise the points show.
+    /// w0 and w1 from the noise the points show (`--w1 auto`, or the default for POINTS).
     stiffness_from_noise: bool,
+    /// `--w1 auto` was given: an estimate that cannot be made is an error.
+    stiffness_asked: bool,
 }
 
 fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
@@ -92,7 +98,9 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
     let mut scene_path = None;
     let mut max_steps_override = None;
     let mut out_scene = None;
-    let mut stiffness_from_noise = false;
+    let (mut stiffness_from_noise, mut stiffness_asked) = (false, false);
+    // What the data-driven defaults of a POINTS fit must leave alone.
+    let (mut paper_forces, mut outliers_given, mut stiffness_given) = (false, false, false);
     let (mut out_mesh, mut out_params, mut quiet, mut app) = (None, None, false, false);
     fn value<T: std::str::FromStr>(flag: &str, v: Option<String>) -> Result<T, String> {
         let v = v.ok_or_else(|| format!("{flag} needs a value"))?;
@@ -128,12 +136,17 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
                 image.options.k = o.k;
             }
             "--w0" => {
+                stiffness_given = true;
                 o.dynamics.w0 = finite(&a, value(&a, args.next())?, 0.0)?;
                 image.options.dynamics.w0 = o.dynamics.w0;
             }
             "--w1" => match args.next() {
-                Some(v) if v == "auto" => stiffness_from_noise = true,
+                Some(v) if v == "auto" => {
+                    stiffness_from_noise = true;
+                    stiffness_asked = true;
+                }
                 v => {
+                    stiffness_given = true;
                     o.dynamics.w1 = finite(&a, value(&a, v)?, 0.0)?;
                     image.options.dynamics.w1 = o.dynamics.w1;
                 }
@@ -221,7 +234,9 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
             "--refine" => o.refine = true,
             "--switch" => o.switch_cross_section = true,
             "--robust" => o = o.robust(),
+            "--paper-forces" => paper_forces = true,
             "--outliers" => {
+                outliers_given = true;
                 let v = args.next().ok_or("--outliers needs a fraction in [0, 1)")?;
                 o.outlier_ratio = v
                     .parse()
@@ -263,6 +278,30 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
             ));
         }
     };
+    if matches!(source, Source::File(_)) && !paper_forces {
+        // The defaults for a user's cloud (README "The command-line fitter"): outlier-robust
+        // weights, point-to-plane springs in the global stage and the membrane's stiffness from
+        // the noise; a pure superquadric also gets the refining stage and the cross-section
+        // switch (the core fitter's only: not through the plugin).
+        let given = o;
+        o = o.for_data();
+        if outliers_given {
+            o.outlier_ratio = given.outlier_ratio;
+        }
+        if app {
+            // The refining stage and the switch run in the core fitter only: through the plugin
+            // they are added only when asked for (and then refused).
+            (o.refine, o.switch_cross_section) = (given.refine, given.switch_cross_section);
+        }
+        // (w0 and w1 act on the local DOFs only.)
+        stiffness_from_noise |= !stiffness_given && !o.global_only;
+    }
+    if paper_forces && !matches!(source, Source::File(_)) {
+        return Err(
+            "--paper-forces acts on POINTS fits (--paper, --image and --scene keep their own settings)"
+                .into(),
+        );
+    }
     if out_scene.is_some() && !matches!(source, Source::Scene(_)) {
         return Err(format!("--out-scene needs --scene\n{USAGE}"));
     }
@@ -291,6 +330,7 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
         out_scene,
         max_steps_override,
         stiffness_from_noise,
+        stiffness_asked,
     };
     Ok((args, paper_points))
 }
@@ -314,8 +354,12 @@ fn run() -> Result<(), String> {
     // `--w1 auto`: the stiffness from the noise of the whole cloud.
     let (options, noise) = if args.stiffness_from_noise {
         let (o, noise) = args.options.with_stiffness_from_noise(&points);
-        let noise = noise.ok_or_else(|| format!("{name}: too few points to estimate the noise"))?;
-        (o, Some(noise))
+        // Asked for, the estimate must be made; as a default, too few points keep the paper's
+        // stiffness (and the fit itself says what is wrong with the cloud, if anything).
+        if noise.is_none() && args.stiffness_asked {
+            return Err(format!("{name}: too few points to estimate the noise"));
+        }
+        (o, noise)
     } else {
         (args.options, None)
     };

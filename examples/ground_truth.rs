@@ -15,7 +15,7 @@
 //! 20 clouds (`assets/data/ems/ground_truth_ems.jsonl`, from running EMS on the exported clouds;
 //! see `assets/data/ATTRIBUTION.md`) are scored the same way in the last column.
 
-use bevy_deformable_sq::model::fit::{FitOptions, fit};
+use bevy_deformable_sq::model::fit::{FitOptions, bounding_diagonal, fit, point_distances};
 use bevy_deformable_sq::model::init::InitialPose;
 use bevy_deformable_sq::synthetic::{CloudRecipe, ParameterErrors, ground_truth_cloud};
 use std::io::Write;
@@ -94,6 +94,7 @@ fn main() -> ExitCode {
     );
     println!("|---|---|---|---|---|");
     let (mut plain, mut robust, mut theirs) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut local_rows, mut local) = (Vec::new(), Vec::new());
     let mut truths = String::new();
     for seed in 1..=clouds {
         let c = ground_truth_cloud(seed, &CloudRecipe::default());
@@ -113,21 +114,48 @@ fn main() -> ExitCode {
                 t.shape.e2
             );
         }
-        let errors = |opts: FitOptions| {
-            fit(&c.points, &opts, |_| {})
-                .map(|r| ParameterErrors::of(t, &InitialPose::of(&r.state)))
+        let inliers = &c.points[..c.points.len() - c.outliers];
+        let diagonal = bounding_diagonal(inliers);
+        // Parameter errors and the inliers' mean distance to the fitted surface over their
+        // bounding-box diagonal.
+        let score = |opts: FitOptions| {
+            fit(&c.points, &opts, |_| {}).map(|r| {
+                let mut x = Vec::new();
+                r.state.node_positions(&r.tess, &mut x);
+                let d = point_distances(&r.tess, &x, inliers);
+                let mean = d.iter().sum::<f64>() / d.len().max(1) as f64 / diagonal;
+                (
+                    ParameterErrors::of(t, &InitialPose::of(&r.state)),
+                    mean,
+                    r.steps,
+                )
+            })
         };
         let global = FitOptions {
             global_only: true,
             ..Default::default()
         };
-        let (p, r) = match (errors(global), errors(global.robust())) {
-            (Ok(p), Ok(r)) => (p, r),
-            (Err(e), _) | (_, Err(e)) => {
+        let (defaults, _) = FitOptions::default()
+            .for_data()
+            .with_stiffness_from_noise(&c.points);
+        let runs = [global, global.robust(), FitOptions::default(), defaults].map(score);
+        let [
+            (p, _, _),
+            (r, pure, _),
+            (_, paper_local, paper_steps),
+            (_, ours_local, ours_steps),
+        ] = match runs {
+            [Ok(a), Ok(b), Ok(c), Ok(d)] => [a, b, c, d],
+            [Err(e), ..] | [_, Err(e), ..] | [_, _, Err(e), _] | [.., Err(e)] => {
                 eprintln!("cloud {seed}: {e}");
                 return ExitCode::from(2);
             }
         };
+        local_rows.push(format!(
+            "| {seed} | {pure:.4} | {paper_local:.4} ({paper_steps}) | {ours_local:.4} ({ours_steps}) | {:.1} |",
+            pure / ours_local
+        ));
+        local.push([pure, paper_local, ours_local]);
         let name = format!("cloud_{seed}");
         let ems = ems_fits
             .iter()
@@ -156,6 +184,22 @@ fn main() -> ExitCode {
         cell(&medians(&plain)),
         cell(&medians(&robust)),
         cell(&medians(&theirs))
+    );
+    println!();
+    println!(
+        "| cloud | pure superquadric (`--robust --global-only`) | with local DOFs, the paper's forces and stiffness (steps) | with local DOFs, the fitter's defaults (steps) | pure ÷ defaults |"
+    );
+    println!("|---|---|---|---|---|");
+    for row in &local_rows {
+        println!("{row}");
+    }
+    let column = |i: usize| median(local.iter().map(|r: &[f64; 3]| r[i]).collect());
+    println!(
+        "| median | {:.4} | {:.4} | {:.4} | {:.1} |",
+        column(0),
+        column(1),
+        column(2),
+        median(local.iter().map(|r| r[0] / r[2]).collect())
     );
     if let Some(dir) = &export
         && let Err(e) = std::fs::write(dir.join("truth.jsonl"), truths)

@@ -486,10 +486,19 @@ fn the_ground_truth_example_scores_ours_and_ems_with_finite_errors() {
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{text}");
     let rows: Vec<&str> = text.lines().filter(|l| l.starts_with("| ")).collect();
-    // Header, two clouds, the medians.
-    assert_eq!(rows.len(), 4, "{text}");
-    for row in &rows[1..] {
+    // Two tables (parameter errors; inlier residuals with local DOFs), each a header, two
+    // clouds and the medians.
+    assert_eq!(rows.len(), 8, "{text}");
+    for row in &rows[1..4] {
         assert_numeric_cells(row, 3..6, 4);
+    }
+    for row in &rows[5..] {
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        for cell in &cells[2..6] {
+            let number = cell.split(' ').next().unwrap_or("");
+            let v: f64 = number.parse().unwrap_or(f64::NAN);
+            assert!(v.is_finite() && v > 0.0, "{row}");
+        }
     }
 }
 
@@ -546,4 +555,38 @@ fn the_deform_example_prints_four_fits_per_object() {
         // steps, wall ms, mean, p95.
         assert_numeric_cells(row, 4..8, 1);
     }
+}
+
+#[test]
+fn a_users_cloud_gets_robust_forces_and_a_stiffness_from_its_noise_unless_the_papers_are_asked_for()
+{
+    let cloud = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/assets/data/ems/partial_pointCloud_example_1.ply"
+    );
+    // With local DOFs: w0 and w1 from the noise, no refining stage.
+    let local = &json_lines(&run(&[cloud, "--k", "15", "--quiet"]))[0];
+    let w1 = local["w1"].as_f64().expect("w1 chosen from the noise");
+    assert!(local["noise"].as_f64().is_some() && w1 != 0.1, "{local}");
+    assert!(local["refine"].is_null(), "{local}");
+    // A pure superquadric: the refining stage runs (and on this clean partial cloud is kept).
+    let pure = &json_lines(&run(&[cloud, "--global-only", "--quiet"]))[0];
+    assert_eq!(pure["refine"]["kept"], true, "{pure}");
+    // The paper's forces: no noise estimate, no refinement, a farther pure superquadric.
+    let paper = &json_lines(&run(&[cloud, "--global-only", "--paper-forces", "--quiet"]))[0];
+    assert!(
+        paper.get("w1").is_none() && paper["refine"].is_null(),
+        "{paper}"
+    );
+    let mean = |l: &serde_json::Value| l["mean"].as_f64().unwrap();
+    assert!(mean(pure) < 0.5 * mean(paper), "{pure} vs {paper}");
+    // Explicit stiffness is kept; the flag is refused where it has no meaning.
+    let given = &json_lines(&run(&[cloud, "--k", "15", "--w1", "0.2", "--quiet"]))[0];
+    assert!(given.get("w1").is_none(), "{given}");
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/scenes/egg.dsq.ron");
+    assert_bad_input(
+        &["--scene", scene, "--paper-forces"],
+        "--paper-forces",
+        "points",
+    );
 }

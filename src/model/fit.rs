@@ -161,6 +161,30 @@ impl FitOptions {
 }
 
 impl FitOptions {
+    /// These options as the command-line fitter sets them for a user's cloud (all beyond the
+    /// paper; README "The command-line fitter"): outlier-robust weights with the prior outlier
+    /// fraction [`ROBUST_OUTLIER_RATIO`] unless one is set, point-to-plane springs in the global
+    /// stage, and — for a pure superquadric ([`FitOptions::global_only`]) — the refining stage and
+    /// the cross-section switch, i.e. [`FitOptions::robust`]. With local DOFs the refining stage
+    /// and the switch are left as they are: they change the fitted surface by nothing measurable
+    /// there (20 generated clouds with 20 % outliers: the same median inlier residual, 35 % more
+    /// steps). Pair it with [`FitOptions::with_stiffness_from_noise`] for fits with local DOFs.
+    pub fn for_data(self) -> Self {
+        let robust = self.robust();
+        Self {
+            outlier_ratio: if self.outlier_ratio > 0.0 {
+                self.outlier_ratio
+            } else {
+                ROBUST_OUTLIER_RATIO
+            },
+            point_to_plane: true,
+            refine: self.refine || (self.global_only && robust.refine),
+            switch_cross_section: self.switch_cross_section
+                || (self.global_only && robust.switch_cross_section),
+            ..self
+        }
+    }
+
     /// These options with the membrane stiffness (w0, w1) chosen from the noise `points` show
     /// ([`super::noise::estimate_noise`], [`super::noise::stiffness_for_noise`]), and the estimate;
     /// unchanged options and `None` when the noise cannot be estimated (too few points).
