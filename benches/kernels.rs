@@ -131,14 +131,26 @@ fn ems_fits(c: &mut Criterion) {
         "partial_pointCloud_example_3",
     ] {
         let points = load_points(&dir.join(format!("{name}.ply"))).expect("shipped cloud");
-        for global_only in [true, false] {
-            let opts = FitOptions {
+        for (mode, global_only, defaults) in [
+            ("global", true, false),
+            ("local", false, false),
+            ("global_defaults", true, true),
+            ("local_defaults", false, true),
+        ] {
+            // The paper's forces and stiffness (`fit --paper-forces`), or the command-line
+            // fitter's defaults for a cloud (`fit`).
+            let paper = FitOptions {
                 global_only,
                 ..Default::default()
             };
-            let mode = if global_only { "global" } else { "local" };
+            // The noise estimate is part of the timed fit, as it is of the command line's.
+            let opts = || match (defaults, global_only) {
+                (false, _) => paper,
+                (true, true) => paper.for_data(),
+                (true, false) => paper.for_data().with_stiffness_from_noise(&points).0,
+            };
             g.bench_with_input(BenchmarkId::new(mode, name), &(), |b, _| {
-                b.iter(|| black_box(fit(&points, &opts, |_| {}).expect("fit")))
+                b.iter(|| black_box(fit(&points, &opts(), |_| {}).expect("fit")))
             });
         }
     }

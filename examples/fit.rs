@@ -351,6 +351,8 @@ fn run() -> Result<(), String> {
         (Source::Paper(name), None) => return Err(format!("no data for --paper {name}")),
         (Source::Image(_) | Source::Scene(_), _) => unreachable!("returned above"),
     };
+    // The wall time includes the noise estimate.
+    let start = Instant::now();
     // `--w1 auto`: the stiffness from the noise of the whole cloud.
     let (options, noise) = if args.stiffness_from_noise {
         let (o, noise) = args.options.with_stiffness_from_noise(&points);
@@ -367,7 +369,6 @@ fn run() -> Result<(), String> {
     if args.image.auto_parts > 1 {
         return run_parts(&points, &name, &args);
     }
-    let start = Instant::now();
     let quiet = args.quiet;
     let mut last_print = Instant::now();
     let report = if args.app {

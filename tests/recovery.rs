@@ -367,3 +367,27 @@ fn with_local_dofs_the_data_defaults_ignore_outliers_that_drag_the_papers_membra
     assert!(ours < 1.5 * noise_floor, "{ours} vs noise {noise_floor}");
     assert!(papers > 3.0 * ours, "paper's {papers} vs defaults {ours}");
 }
+
+#[test]
+fn a_refinement_that_comes_closer_and_then_runs_off_is_given_up_before_its_budget() {
+    use bevy_deformable_sq::io::load_points;
+    use bevy_deformable_sq::model::fit::REFINE_MAX_STEPS;
+    // EMS's noisy cylinder with outliers: refined, it first comes closer to the points, then its
+    // length runs away (cap points' closest surface points slide onto the side wall). The check
+    // against the least distance seen stops it long before its step budget, and it is undone.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("assets/data/ems/noisy_pointCloud_example_2.ply");
+    let points = load_points(&path).expect("the shipped EMS cloud");
+    let robust = FitOptions {
+        global_only: true,
+        ..Default::default()
+    }
+    .robust();
+    let stage = fit(&points, &robust, |_| {})
+        .expect("fit")
+        .refinement
+        .expect("the robust options refine");
+    assert!(stage.gave_up && !stage.kept, "{stage:?}");
+    assert!(stage.after < stage.before, "{stage:?}");
+    assert!(stage.steps < REFINE_MAX_STEPS * 3 / 4, "{stage:?}");
+}
