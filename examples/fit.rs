@@ -282,16 +282,11 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
         // The defaults for a user's cloud (README "The command-line fitter"): outlier-robust
         // weights, point-to-plane springs in the global stage and the membrane's stiffness from
         // the noise; a pure superquadric also gets the refining stage and the cross-section
-        // switch (the core fitter's only: not through the plugin).
+        // switch.
         let given = o;
         o = o.for_data();
         if outliers_given {
             o.outlier_ratio = given.outlier_ratio;
-        }
-        if app {
-            // The refining stage and the switch run in the core fitter only: through the plugin
-            // they are added only when asked for (and then refused).
-            (o.refine, o.switch_cross_section) = (given.refine, given.switch_cross_section);
         }
         // (w0 and w1 act on the local DOFs only.)
         stiffness_from_noise |= !stiffness_given && !o.global_only;

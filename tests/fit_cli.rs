@@ -503,18 +503,25 @@ fn the_ground_truth_example_scores_ours_and_ems_with_finite_errors() {
 }
 
 #[test]
-fn robust_flags_are_refused_through_the_app() {
+fn the_robust_fit_through_the_app_is_the_core_fit() {
+    // The cross-section switch and the refining stage (kept here) run through the plugin too,
+    // step for step as in the core fitter.
     let cloud = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/assets/data/ems/partial_pointCloud_example_1.ply"
     );
-    let out = Command::new(example_binary("fit"))
-        .args([cloud, "--robust", "--app", "--quiet"])
-        .output()
-        .expect("run fit");
-    assert_eq!(out.status.code(), Some(2));
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("not through the plugin"), "{err}");
+    let line = |through: &[&str]| {
+        let mut args = vec![cloud, "--global-only", "--robust", "--k", "15", "--quiet"];
+        args.extend_from_slice(through);
+        let mut l = json_lines(&run(&args)).remove(0);
+        for k in ["wall_ms", "steps_per_s", "through"] {
+            l.as_object_mut().unwrap().remove(k);
+        }
+        l
+    };
+    let (core, app) = (line(&[]), line(&["--app"]));
+    assert!(core["refine"]["steps"].as_u64().unwrap() > 0, "{core}");
+    assert_eq!(core, app);
 }
 
 #[test]

@@ -406,12 +406,36 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
         0.01,
         77,
     );
-    for (global_only, point_to_plane, outlier_ratio) in [
+    // A diamond section (ε2 far from 1), on which the fit lands on the dual and the
+    // cross-section switch turns it.
+    let square = superquadric_cloud(
+        &SuperquadricParams {
+            a1: 0.8,
+            a2: 0.8,
+            e2: 1.8,
+            ..shape
+        },
+        DVec3::new(-1.0, 0.5, 0.0),
+        DQuat::from_rotation_y(0.4),
+        300,
+        0.01,
+        78,
+    );
+    let robust = |global_only| {
+        FitOptions {
+            k: 11,
+            global_only,
+            ..Default::default()
+        }
+        .robust()
+    };
+    let cases = [
         (true, false, 0.0),
         (false, false, 0.0),
         (true, true, 0.0),
         (false, false, 0.2),
-    ] {
+    ]
+    .map(|(global_only, point_to_plane, outlier_ratio)| {
         let opts = FitOptions {
             k: 11,
             global_only,
@@ -419,8 +443,20 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
             outlier_ratio,
             ..Default::default()
         };
-        let core = fit(&points, &opts, |_| {}).expect("core fit");
-        let app = fit_headless(&points, &opts).expect("headless fit");
+        (&points, opts)
+    })
+    .into_iter()
+    .chain([(&square, robust(true)), (&square, robust(false))]);
+    let mut switched = false;
+    for (points, opts) in cases {
+        let (global_only, point_to_plane) = (opts.global_only, opts.point_to_plane);
+        let core = fit(points, &opts, |_| {}).expect("core fit");
+        let app = fit_headless(points, &opts).expect("headless fit");
+        assert_eq!(app.refinement, core.refinement);
+        assert_eq!(app.initial, core.initial);
+        switched |= opts.switch_cross_section
+            && !bevy_deformable_sq::model::fit::initial_hypotheses(points, &opts)
+                .contains(&core.initial);
         assert_eq!(
             app.steps, core.steps,
             "global_only {global_only}, plane {point_to_plane}"
@@ -433,10 +469,14 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
         );
         assert_eq!(app.residuals, core.residuals);
         eprintln!(
-            "global_only {global_only}: {} steps, {:?}",
-            app.steps, app.residuals
+            "global_only {global_only}: {} steps, {:?}, refinement {:?}",
+            app.steps, app.residuals, app.refinement
         );
     }
+    assert!(
+        switched,
+        "the cross-section dual was chosen in no robust case"
+    );
 }
 
 #[cfg(feature = "serialize")]

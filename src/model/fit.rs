@@ -258,8 +258,11 @@ pub enum Stage {
     /// Global DOFs only, after the hypothesis is chosen, with each point's point of influence
     /// migrating to its closest point on the surface (the paper's Fig. 3) and point-to-plane
     /// springs: the superquadric fitted to the points themselves instead of to the nodes they
-    /// chose (beyond the paper's experiments; [`FitOptions::refine`]). Run by [`fit`] only: it is
-    /// undone there when it does not pay, which the plugin's stage driver cannot do.
+    /// chose (beyond the paper's experiments; [`FitOptions::refine`]). [`fit`] and
+    /// `plugin::headless::fit_headless` undo it when it does not pay; a [`FitDriver`] alone runs
+    /// it to rest or to its budget.
+    ///
+    /// [`FitDriver`]: crate::plugin::FitDriver
     Refine,
     /// Global and local DOFs together.
     Joint,

@@ -1,9 +1,9 @@
 //! Fitting through the plugin in a headless app (`MinimalPlugins`): the command-line fitter's
 //! `--app` mode. It runs the same fit as [`crate::model::fit::fit`], step for step, with every
 //! initial hypothesis as its own entity, simulated in parallel; the result is the same. The
-//! refining stage and the cross-section switch ([`FitOptions::refine`],
-//! [`FitOptions::switch_cross_section`]) choose between runs after the fact and run in the core
-//! fitter only; asking for them here is an error.
+//! cross-section switch ([`FitOptions::switch_cross_section`]) runs the dual as one more entity,
+//! and the refining stage ([`FitOptions::refine`]) runs on the chosen one, which goes back to its
+//! state before the stage when the refinement is not kept — as `fit` does.
 
 use super::{
     DeformableSqPlugin, FemMesh, FitDriver, GlobalShape, LocalDofs, ModelSettings, RangeData,
@@ -11,10 +11,12 @@ use super::{
 };
 use crate::model::dynamics::ModelState;
 use crate::model::fit::{
-    FitError, FitOptions, FitReport, Normalization, Stage, global_stages, has_joint_stage,
+    FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_GIVE_UP,
+    REFINE_MAX_STEPS, Refinement, Stage, cross_section_dual, global_stages, has_joint_stage,
     initial_hypotheses, mean_distance, residuals, validate_options, validate_points,
 };
 use crate::model::forces::range::RangeForces;
+use crate::model::init::InitialPose;
 use bevy::math::DVec3;
 use bevy::prelude::*;
 
@@ -60,13 +62,6 @@ fn run_until_done(app: &mut App, max_updates: u64) -> Result<(), FitError> {
 pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, FitError> {
     validate_points(points)?;
     validate_options(opts)?;
-    if opts.refine || opts.switch_cross_section {
-        return Err(FitError::BadOption(
-            "FitOptions::refine and switch_cross_section run in model::fit::fit only, not \
-             through the plugin"
-                .into(),
-        ));
-    }
     let norm = Normalization::of(points);
     let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
     let candidates = initial_hypotheses(points, opts);
@@ -76,25 +71,8 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     let entities: Vec<Entity> = candidates
         .iter()
         .map(|initial| {
-            let start = norm.pose_to_unit(initial);
-            let mut range = RangeForces::new(unit.clone(), opts.beta, opts.influence);
-            range.coverage = 0.0;
-            app.world_mut()
-                .spawn((
-                    GlobalShape::from(start.shape.normalized()),
-                    RigidState {
-                        translation: start.translation,
-                        rotation: start.rotation,
-                    },
-                    FemMesh::new(opts.k),
-                    ModelSettings::from_fit(opts),
-                    RangeData {
-                        forces: range,
-                        reassignments: 0,
-                    },
-                    FitDriver::new(*opts, global_stages(opts), share),
-                ))
-                .id()
+            let driver = FitDriver::new(*opts, global_stages(opts), share);
+            spawn_model(&mut app, opts, &unit, &norm.pose_to_unit(initial), driver)
         })
         .collect();
     let max_updates = opts.max_steps as u64 + 10;
@@ -116,9 +94,8 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
             best = Some((score, i));
         }
     }
-    let (_, chosen) = best.ok_or(FitError::Degenerate)?;
-    let steps_of = |app: &App, e: Entity| app.world().get::<SimControl>(e).map_or(0, |c| c.steps);
-    let other_steps: u64 = entities
+    let (mut score, chosen) = best.ok_or(FitError::Degenerate)?;
+    let mut other_steps: u64 = entities
         .iter()
         .enumerate()
         .filter(|(i, _)| *i != chosen)
@@ -129,7 +106,34 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
             app.world_mut().despawn(e);
         }
     }
-    let e = entities[chosen];
+    let mut e = entities[chosen];
+    let mut initial = candidates[chosen];
+    if opts.switch_cross_section {
+        let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
+        if let Some(dual) = cross_section_dual(&InitialPose::of(&state)) {
+            let budget = (opts.max_steps as u64).saturating_sub(other_steps + steps_of(&app, e));
+            let driver = FitDriver::new(*opts, [Stage::Global], budget);
+            let other = spawn_model(&mut app, opts, &unit, &dual, driver);
+            run_until_done(&mut app, max_updates)?;
+            let other_score = distance_of(&app, other, &tess, &unit)?;
+            if other_score < score {
+                other_steps += steps_of(&app, e);
+                app.world_mut().despawn(e);
+                (e, score) = (other, other_score);
+                let start = ModelState::new(&tess, dual.translation, dual.rotation, dual.shape);
+                initial = InitialPose::of(&norm.state_to_data(&start));
+            } else {
+                other_steps += steps_of(&app, other);
+                app.world_mut().despawn(other);
+            }
+        }
+    }
+    let mut refinement = None;
+    if opts.refine {
+        let (stage, undone_steps) = refine(&mut app, e, opts, other_steps, score, &tess, &unit)?;
+        other_steps += undone_steps;
+        refinement = Some(stage);
+    }
     if has_joint_stage(opts) {
         let budget = opts.max_steps as u64 - other_steps;
         app.world_mut()
@@ -154,9 +158,146 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         reassignments: driver.reassignments as u32,
         converged: driver.converged,
         substepped_steps: driver.substepped_steps as u32,
-        initial: candidates[chosen],
-        refinement: None,
+        initial,
+        refinement,
         state,
         tess: (*tess).clone(),
     })
+}
+
+fn steps_of(app: &App, e: Entity) -> u64 {
+    app.world().get::<SimControl>(e).map_or(0, |c| c.steps)
+}
+
+/// Spawns a model of `opts` at `start` (the fit's unit frame) pulled by the `unit` points.
+fn spawn_model(
+    app: &mut App,
+    opts: &FitOptions,
+    unit: &[DVec3],
+    start: &InitialPose,
+    driver: FitDriver,
+) -> Entity {
+    let mut range = RangeForces::new(unit.to_vec(), opts.beta, opts.influence);
+    range.coverage = 0.0;
+    app.world_mut()
+        .spawn((
+            GlobalShape::from(start.shape.normalized()),
+            RigidState {
+                translation: start.translation,
+                rotation: start.rotation,
+            },
+            FemMesh::new(opts.k),
+            ModelSettings::from_fit(opts),
+            RangeData {
+                forces: range,
+                reassignments: 0,
+            },
+            driver,
+        ))
+        .id()
+}
+
+/// The mean distance of the `unit` points to the surface of model `e`.
+fn distance_of(
+    app: &App,
+    e: Entity,
+    tess: &crate::model::fem::Tessellation,
+    unit: &[DVec3],
+) -> Result<f64, FitError> {
+    let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
+    let mut x = Vec::new();
+    state.node_positions(tess, &mut x);
+    Ok(mean_distance(tess, &x, unit))
+}
+
+/// The refining stage on model `e`, as `fit` runs it: checked every [`REFINE_CHECK_EVERY`] of the
+/// model's steps and given up past [`REFINE_GIVE_UP`] times the least distance seen (`score`, the
+/// global stage's, at first); kept when at rest and no farther than `score`, else the model goes
+/// back to its state before the stage. Returns the outcome and the steps that were undone.
+fn refine(
+    app: &mut App,
+    e: Entity,
+    opts: &FitOptions,
+    other_steps: u64,
+    score: f64,
+    tess: &crate::model::fem::Tessellation,
+    unit: &[DVec3],
+) -> Result<(Refinement, u64), FitError> {
+    let world = app.world();
+    let snapshot = (
+        world.get::<RigidState>(e).cloned(),
+        world.get::<GlobalShape>(e).cloned(),
+        world.get::<LocalDofs>(e).cloned(),
+        world.get::<RangeData>(e).cloned(),
+        world.get::<FitDriver>(e).cloned(),
+        world.get::<SimControl>(e).cloned(),
+    );
+    let (Some(rigid), Some(shape), Some(local), Some(range), Some(driver), Some(control)) =
+        snapshot
+    else {
+        return Err(FitError::Degenerate);
+    };
+    let start = control.steps;
+    let budget = (start + REFINE_MAX_STEPS as u64).min(opts.max_steps as u64 - other_steps);
+    {
+        let mut entity = app.world_mut().entity_mut(e);
+        entity
+            .get_mut::<FitDriver>()
+            .ok_or(FitError::Degenerate)?
+            .continue_with([Stage::Refine], budget);
+        entity
+            .get_mut::<SimControl>()
+            .ok_or(FitError::Degenerate)?
+            .paused = false;
+    }
+    let (mut least, mut gave_up, mut seen) = (score, false, start);
+    for _ in 0..=budget.saturating_sub(start) + 10 {
+        app.update();
+        let world = app.world();
+        let control = world.get::<SimControl>(e).ok_or(FitError::Degenerate)?;
+        let driver = world.get::<FitDriver>(e).ok_or(FitError::Degenerate)?;
+        if control.frozen {
+            return Err(FitError::Step(
+                crate::model::dynamics::StepError::NonFinite("state (model frozen)"),
+            ));
+        }
+        if control.steps == seen {
+            if driver.done {
+                break;
+            }
+            continue;
+        }
+        seen = control.steps;
+        // `fit` checks after every step that did not end the stage at rest.
+        let at_rest = driver.done && driver.converged;
+        if !at_rest && seen.is_multiple_of(REFINE_CHECK_EVERY as u64) {
+            let distance = distance_of(app, e, tess, unit)?;
+            if distance > REFINE_GIVE_UP * least {
+                gave_up = true;
+                break;
+            }
+            least = least.min(distance);
+        }
+        if driver.done {
+            break;
+        }
+    }
+    let world = app.world();
+    let at_rest = !gave_up && world.get::<FitDriver>(e).is_some_and(|d| d.converged);
+    let after = distance_of(app, e, tess, unit)?;
+    let steps = steps_of(app, e) - start;
+    let kept = at_rest && after <= score;
+    if !kept {
+        app.world_mut()
+            .entity_mut(e)
+            .insert((rigid, shape, local, range, driver, control));
+    }
+    let outcome = Refinement {
+        steps: steps as u32,
+        kept,
+        gave_up,
+        before: score,
+        after,
+    };
+    Ok((outcome, if kept { 0 } else { steps }))
 }

@@ -150,6 +150,7 @@ pub fn reassign(
                             let clock = StageClock::new(stage);
                             range.forces.coverage = clock.coverage(&driver.options);
                             range.forces.plane = clock.plane(&driver.options);
+                            range.forces.mode = clock.influence(&driver.options);
                             let ratio = driver.options.outlier_ratio;
                             if ratio > 0.0 && range.forces.robust.is_none() {
                                 range.forces.robust = Some(Robust::new(ratio));
