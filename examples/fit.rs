@@ -5,7 +5,8 @@
 //!     [--nodes N | --k K] [--w0 F] [--w1 F|auto] [--beta F] [--max-steps N] [--out-mesh FILE.obj]
 //!     [--out-params FILE.json] [--quiet]
 //!     points only: [--global-only] [--paper-forces] [--plane] [--outliers F] [--refine] [--switch]
-//!                  [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]
+//!                  [--similar] [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper]
+//!                  [--bend]
 //!     images only: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth]
 //!                  [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]
 //!     scenes only: [--out-scene FILE.dsq.ron]
@@ -23,8 +24,8 @@
 //! Image fits print one JSON line per part, then one for the image
 //! (`outline_*`: mean P/P_ref along the projected outlines; `iou_*`: silhouettes vs foreground). `--app` runs the same fit through `DeformableSqPlugin` in a headless Bevy app
 //! (every initial hypothesis an entity, simulated in parallel); the result is the same. Progress goes to stderr; the last line
-//! on stdout is a one-line JSON summary. `--robust` is `--outliers 0.2 --plane --refine --switch`
-//! (`FitOptions::robust`): the most accurate pure superquadric on partial or outlier-ridden clouds.
+//! on stdout is a one-line JSON summary. `--robust` is `--outliers 0.2 --plane --refine --switch
+//! --similar` (`FitOptions::robust`): the most accurate pure superquadric on partial or outlier-ridden clouds.
 //! A POINTS file is fitted by default with `--outliers 0.2 --plane --w1 auto`, and with `--robust`
 //! when `--global-only` (without `--app`); `--paper-forces` starts from the paper's springs and
 //! stiffness instead (equal weights, nearest-node springs, w0 = 1e-3, w1 = 0.1), to which the
@@ -61,7 +62,7 @@ use std::time::Duration;
 use std::time::Instant;
 
 const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F|auto] [--beta F] \
-[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--paper-forces] [--plane] [--outliers F] [--refine] [--switch] [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]; \
+[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--paper-forces] [--plane] [--outliers F] [--refine] [--switch] [--similar] [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]; \
 images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]; scenes: [--out-scene FILE.dsq.ron]";
 
 /// Where the data come from.
@@ -233,6 +234,7 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
             "--plane" => o.point_to_plane = true,
             "--refine" => o.refine = true,
             "--switch" => o.switch_cross_section = true,
+            "--similar" => o.similarity_switch = true,
             "--robust" => o = o.robust(),
             "--paper-forces" => paper_forces = true,
             "--outliers" => {

@@ -310,13 +310,14 @@ fn a_refinement_that_runs_off_is_given_up_at_its_first_check_and_undone() {
     // The bunny is no superquadric: refined with the outlier weights, the superquadric drops the
     // ears and head as outliers and runs off along the one-sided distance. The check stops it
     // at once, and the fit goes on from the global stage's state exactly.
+    // (Without the similarity switch, whose candidates would be refined or not with it.)
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/data/bunny_scan.obj");
     let points = load_points(&path).expect("the shipped bunny scan");
     let robust = FitOptions {
         global_only: true,
-        ..Default::default()
-    }
-    .robust();
+        similarity_switch: false,
+        ..FitOptions::default().robust()
+    };
     let refined = fit(&points, &robust, |_| {}).expect("fit");
     let stage = refined.refinement.expect("the robust options refine");
     assert!(stage.gave_up && !stage.kept, "{stage:?}");

@@ -30,6 +30,7 @@ use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces, Robust}
 use super::init::{InitialPose, initial_pose, moments};
 use bevy::math::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use std::f64::consts::SQRT_2;
 use std::num::NonZero;
 
 /// Fewest points a fit accepts: the 11 independent global DOFs need at least 4 points in general
@@ -111,6 +112,13 @@ pub struct FitOptions {
     /// fits closer: a square section and a diamond one are each other's local minimum (EMS's
     /// "similarity switching"; beyond the paper).
     pub switch_cross_section: bool,
+    /// After the refining stage, try the fit's similarity candidates ([`similarity_candidates`]:
+    /// the other two axes as the model's z with the exponents swapped, and the cross-section dual
+    /// about each axis whose two perpendicular semi-axes are alike), each through the global and
+    /// refining stages, and keep the one closest to the points — weighted by the chosen fit's
+    /// inlier probabilities — if it is closer than the fit (EMS's similarity switching, Liu et
+    /// al. 2022; beyond the paper).
+    pub similarity_switch: bool,
     /// Initial pose and shape.
     pub init: Initialization,
 }
@@ -140,6 +148,7 @@ impl Default for FitOptions {
             outlier_ratio: 0.0,
             refine: false,
             switch_cross_section: false,
+            similarity_switch: false,
             init: Initialization::Moments,
         }
     }
@@ -148,14 +157,15 @@ impl Default for FitOptions {
 impl FitOptions {
     /// These options with everything that makes a fit robust to outliers and accurate on partial
     /// clouds (all beyond the paper): outlier-robust weights with a prior outlier fraction of 0.2
-    /// (EMS's), point-to-plane springs in the global stage, the refining stage and the
-    /// cross-section switch. The fit example's `--robust`.
+    /// (EMS's), point-to-plane springs in the global stage, the refining stage, the cross-section
+    /// switch and the similarity switch. The fit example's `--robust`.
     pub fn robust(self) -> Self {
         Self {
             outlier_ratio: ROBUST_OUTLIER_RATIO,
             point_to_plane: true,
             refine: true,
             switch_cross_section: true,
+            similarity_switch: true,
             ..self
         }
     }
@@ -166,10 +176,10 @@ impl FitOptions {
     /// paper; README "The command-line fitter"): outlier-robust weights with the prior outlier
     /// fraction [`ROBUST_OUTLIER_RATIO`] unless one is set, point-to-plane springs in the global
     /// stage, and — for a pure superquadric ([`FitOptions::global_only`]) — the refining stage and
-    /// the cross-section switch, i.e. [`FitOptions::robust`]. With local DOFs the refining stage
-    /// and the switch are left as they are: they change the fitted surface by nothing measurable
-    /// there (20 generated clouds with 20 % outliers: the same median inlier residual, 35 % more
-    /// steps). Pair it with [`FitOptions::with_stiffness_from_noise`] for fits with local DOFs.
+    /// both switches, i.e. [`FitOptions::robust`]. With local DOFs the refining stage and the
+    /// switches are left as they are: they change the fitted surface by nothing measurable there
+    /// (20 generated clouds with 20 % outliers: the same median inlier residual, 35 % more steps
+    /// for the refining stage and the cross-section switch). Pair it with [`FitOptions::with_stiffness_from_noise`] for fits with local DOFs.
     pub fn for_data(self) -> Self {
         let robust = self.robust();
         Self {
@@ -182,6 +192,8 @@ impl FitOptions {
             refine: self.refine || (self.global_only && robust.refine),
             switch_cross_section: self.switch_cross_section
                 || (self.global_only && robust.switch_cross_section),
+            similarity_switch: self.similarity_switch
+                || (self.global_only && robust.similarity_switch),
             ..self
         }
     }
@@ -379,6 +391,13 @@ impl Normalization {
             shape,
         }
     }
+    /// Maps a start pose from the unit frame back to data units (as a state started there would
+    /// report it: the shape normalised).
+    pub fn pose_to_data(&self, tess: &Tessellation, pose: &InitialPose) -> InitialPose {
+        let start = ModelState::new(tess, pose.translation, pose.rotation, pose.shape);
+        InitialPose::of(&self.state_to_data(&start))
+    }
+
     /// Maps a state from the unit frame back to data units.
     pub fn state_to_data(&self, s: &ModelState) -> ModelState {
         let mut shape = s.shape;
@@ -526,6 +545,19 @@ impl StageClock {
     }
 }
 
+/// The mean distance of `points` to the surface through `node_x`, point i weighted by
+/// `weights[i]` (the similarity switch's score, [`FitOptions::similarity_switch`]).
+pub fn weighted_mean_distance(
+    tess: &Tessellation,
+    node_x: &[DVec3],
+    points: &[DVec3],
+    weights: &[f64],
+) -> f64 {
+    let d = point_distances(tess, node_x, points);
+    let total: f64 = weights.iter().sum();
+    d.iter().zip(weights).map(|(d, w)| d * w).sum::<f64>() / total.max(f64::MIN_POSITIVE)
+}
+
 /// The largest distance any node moved between two sets of node positions: the rest measure of
 /// [`StageClock::after_step`].
 pub fn max_motion(before: &[DVec3], after: &[DVec3]) -> f64 {
@@ -568,12 +600,74 @@ pub fn cross_section_dual(pose: &InitialPose) -> Option<InitialPose> {
     if (q.e2 - 1.0).abs() <= DUAL_EPSILON_GAP {
         return None;
     }
-    let half_section = 0.5 * (q.a1 + q.a2);
-    let section = if q.e2 < 1.0 {
-        half_section * std::f64::consts::SQRT_2
-    } else {
-        half_section / std::f64::consts::SQRT_2
-    };
+    Some(dual_about_z(
+        pose,
+        if q.e2 < 1.0 { SQRT_2 } else { 1.0 / SQRT_2 },
+    ))
+}
+
+/// The pose with its axes permuted cyclically `turns` times ((x, y, z) → (y, z, x) for one), so
+/// that another axis is the model's z, with the same semi-axes along the same world directions.
+/// With `swap`, ε1 and ε2 trade places (EMS's axis-mismatch candidate: exact for ε1 = ε2 = 1,
+/// and the nearest superquadric of the new frame when both exponents are alike).
+fn turned_axes(pose: &InitialPose, turns: usize, swap: bool) -> InitialPose {
+    let m = bevy::math::DMat3::from_quat(pose.rotation);
+    let semi = pose.shape.semi_axes().to_array();
+    let (cx, cy, cz) = (turns % 3, (turns + 1) % 3, (turns + 2) % 3);
+    let frame = bevy::math::DMat3::from_cols(m.col(cx), m.col(cy), m.col(cz));
+    let a = semi[cx].max(semi[cy]).max(semi[cz]).max(f64::MIN_POSITIVE);
+    let q = pose.shape;
+    let (e1, e2) = if swap { (q.e2, q.e1) } else { (q.e1, q.e2) };
+    InitialPose {
+        translation: pose.translation,
+        rotation: bevy::math::DQuat::from_mat3(&frame).normalize(),
+        shape: super::superquadric::SuperquadricParams {
+            a,
+            a1: semi[cx] / a,
+            a2: semi[cy] / a,
+            a3: semi[cz] / a,
+            e1,
+            e2,
+        },
+    }
+}
+
+/// Bounds on the ratio of two semi-axes for [`similarity_candidates`] to offer the cross-section
+/// dual about the third axis (EMS's: a square-ish section only).
+pub const DUAL_AXES_RATIO: (f64, f64) = (0.6, 1.4);
+
+/// The similarity candidates of a fitted pose (EMS's similarity switching, Liu et al. 2022): the
+/// two other axes as the model's z axis with ε1 and ε2 swapped, then for each axis whose two
+/// perpendicular semi-axes are within [`DUAL_AXES_RATIO`] of each other, that axis as z and the
+/// cross-section dual about it (turned 45°, ε2 → 2 − ε2, the section rescaled as in
+/// [`cross_section_dual`]). Each is a different local minimum near the same surface.
+pub fn similarity_candidates(pose: &InitialPose) -> Vec<InitialPose> {
+    let mut candidates = vec![turned_axes(pose, 1, true), turned_axes(pose, 2, true)];
+    for turns in 0..3 {
+        let along = turned_axes(pose, turns, turns != 0);
+        let s = along.shape.semi_axes();
+        let ratio = s.x / s.y;
+        if ratio > DUAL_AXES_RATIO.0 && ratio < DUAL_AXES_RATIO.1 {
+            // The section's scale goes linearly in ε2 from √2 (a square's dual diamond reaches its
+            // corners) through 1 (a circle is its own dual) to 1/√2 (a diamond's dual square is
+            // inscribed), as EMS scales its candidates.
+            let e2 = along.shape.e2;
+            let scale = if e2 <= 1.0 {
+                (1.0 - SQRT_2) * e2 + SQRT_2
+            } else {
+                (0.5 * SQRT_2 - 1.0) * e2 + 2.0 - 0.5 * SQRT_2
+            };
+            candidates.push(dual_about_z(&along, scale));
+        }
+    }
+    candidates
+}
+
+/// The pose turned 45° about its z axis with ε2 → 2 − ε2 and both section semi-axes set to their
+/// mean times `scale`.
+fn dual_about_z(pose: &InitialPose, scale: f64) -> InitialPose {
+    let q = pose.shape;
+    let section = 0.5 * (q.a1 + q.a2) * scale;
     let rotation = (pose.rotation
         * bevy::math::DQuat::from_rotation_z(std::f64::consts::FRAC_PI_4))
     .normalize();
@@ -583,11 +677,11 @@ pub fn cross_section_dual(pose: &InitialPose) -> Option<InitialPose> {
         e2: 2.0 - q.e2,
         ..q
     };
-    Some(InitialPose {
+    InitialPose {
         translation: pose.translation,
         rotation,
         shape: shape.normalized(),
-    })
+    }
 }
 
 /// The initial states a fit tries: the three axis hypotheses of the moments frame, or the one
@@ -739,36 +833,45 @@ impl<'a> Relaxation<'a> {
         }
         Ok(false)
     }
+
+    /// The refining stage from a global stage whose points lay `score` from the surface, within
+    /// `cap` steps of this relaxation in all: given up past [`REFINE_GIVE_UP`] times the least
+    /// distance seen, and undone (this relaxation back to its state before it) unless it came to
+    /// rest no farther than `score`.
+    fn refine(
+        &mut self,
+        score: f64,
+        cap: u32,
+        progress: &mut impl FnMut(&FitProgress),
+    ) -> Result<Refinement, FitError> {
+        let before = self.clone();
+        let budget = (self.steps + REFINE_MAX_STEPS).min(cap);
+        self.give_up_above = Some(score);
+        let at_rest = self.run(Stage::Refine, budget, progress)?;
+        let gave_up = self.gave_up;
+        (self.give_up_above, self.gave_up) = (None, false);
+        let after = mean_distance(self.tess, &self.x, &self.range.points);
+        let kept = at_rest && after <= score;
+        let steps = self.steps - before.steps;
+        if !kept {
+            *self = before;
+        }
+        Ok(Refinement {
+            steps,
+            kept,
+            gave_up,
+            before: score,
+            after,
+        })
+    }
 }
 
 /// The moments frame with each principal axis in turn as the model's z axis: the superquadric's
 /// z is special (ε1 shapes its profile), and which data axis it belongs on is not always the one
 /// of largest spread (a squat mug's axis is its smallest).
 fn axis_hypotheses(pose: &InitialPose) -> [InitialPose; 3] {
-    let m = bevy::math::DMat3::from_quat(pose.rotation);
-    let semi = pose.shape.semi_axes();
-    std::array::from_fn(|i| {
-        // Cyclic permutation keeps the frame right-handed: (x, y, z) → (y, z, x) → (z, x, y).
-        let (cx, cy, cz) = (i, (i + 1) % 3, (i + 2) % 3);
-        let (ax, ay, az) = (
-            [semi.x, semi.y, semi.z][cx],
-            [semi.x, semi.y, semi.z][cy],
-            [semi.x, semi.y, semi.z][cz],
-        );
-        let frame = bevy::math::DMat3::from_cols(m.col(cx), m.col(cy), m.col(cz));
-        let a = ax.max(ay).max(az);
-        InitialPose {
-            translation: pose.translation,
-            rotation: bevy::math::DQuat::from_mat3(&frame).normalize(),
-            shape: super::superquadric::SuperquadricParams {
-                a,
-                a1: ax / a,
-                a2: ay / a,
-                a3: az / a,
-                ..pose.shape
-            },
-        }
-    })
+    // Cyclic permutation keeps the frame right-handed: (x, y, z) → (y, z, x) → (z, x, y).
+    std::array::from_fn(|i| turned_axes(pose, i, false))
 }
 
 /// Runs `job` on every item, spread over the available cores (each worker takes the next item);
@@ -862,32 +965,58 @@ pub fn fit(
         let other_score = mean_distance(&tess, &other.x, &other.range.points);
         if other_score < score {
             (score, relax, converged) = (other_score, other, other_converged);
-            let start = ModelState::new(&tess, dual.translation, dual.rotation, dual.shape);
-            initial = InitialPose::of(&norm.state_to_data(&start));
+            initial = norm.pose_to_data(&tess, &dual);
         }
     }
     // Steps taken by runs other than `relax` (the other hypotheses, an undone refinement).
     let mut other_steps = steps_used - relax.steps;
     let mut refinement = None;
     if opts.refine {
-        let before = relax.clone();
-        let budget = (relax.steps + REFINE_MAX_STEPS).min(opts.max_steps - other_steps);
-        relax.give_up_above = Some(score);
-        let at_rest = relax.run(Stage::Refine, budget, &mut progress)?;
-        relax.give_up_above = None;
-        let refined = mean_distance(&tess, &relax.x, &relax.range.points);
-        let kept = at_rest && refined <= score;
-        let steps = relax.steps - before.steps;
-        refinement = Some(Refinement {
-            steps,
-            kept,
-            gave_up: relax.gave_up,
-            before: score,
-            after: refined,
-        });
-        if !kept {
-            other_steps += steps;
-            relax = before;
+        let cap = opts.max_steps - other_steps;
+        let stage = relax.refine(score, cap, &mut progress)?;
+        if !stage.kept {
+            other_steps += stage.steps;
+        }
+        refinement = Some(stage);
+    }
+    if opts.similarity_switch {
+        // Every candidate is scored with the chosen fit's inlier probabilities.
+        let weights: Vec<f64> = (0..unit.len())
+            .map(|i| relax.range.relative_weight(i))
+            .collect();
+        let weighted = |x: &[DVec3]| weighted_mean_distance(&tess, x, &unit, &weights);
+        let mut best_score = weighted(&relax.x);
+        let mut best = None;
+        for candidate in similarity_candidates(&InitialPose::of(&relax.state)) {
+            let spent = other_steps + relax.steps;
+            let mut other = Relaxation::new(&tess, opts, &unit, &candidate);
+            let other_converged = other.run(
+                Stage::Global,
+                opts.max_steps.saturating_sub(spent),
+                &mut progress,
+            )?;
+            if opts.refine {
+                let score = mean_distance(&tess, &other.x, &other.range.points);
+                let cap = opts.max_steps.saturating_sub(spent);
+                let stage = other.refine(score, cap, &mut progress)?;
+                if !stage.kept {
+                    other_steps += stage.steps;
+                }
+            }
+            let other_score = weighted(&other.x);
+            if other_score < best_score {
+                best_score = other_score;
+                if let Some((old, _, _)) = best.replace((other, other_converged, candidate)) {
+                    other_steps += old.steps;
+                }
+            } else {
+                other_steps += other.steps;
+            }
+        }
+        if let Some((other, other_converged, candidate)) = best {
+            other_steps += relax.steps;
+            (relax, converged) = (other, other_converged);
+            initial = norm.pose_to_data(&tess, &candidate);
         }
     }
     if has_joint_stage(opts) {
@@ -1044,6 +1173,60 @@ mod tests {
     use super::*;
     use crate::model::superquadric::{SuperquadricParams, inside_outside, shape_at};
     use bevy::math::DQuat;
+
+    #[test]
+    fn similarity_candidates_of_a_round_shape_are_the_same_surface() {
+        // A sphere (ε1 = ε2 = 1, equal semi-axes): the axis candidates (exponents swapped) and
+        // the duals about every axis (ε2 = 1, section scale 1) all describe the sphere itself.
+        let pose = InitialPose {
+            translation: DVec3::new(0.3, -0.2, 0.1),
+            rotation: DQuat::from_rotation_y(0.4) * DQuat::from_rotation_x(-0.3),
+            shape: SuperquadricParams::default(),
+        };
+        let candidates = similarity_candidates(&pose);
+        // Two axis candidates and a dual about each axis.
+        assert_eq!(candidates.len(), 5);
+        // Surface points of `pose` lie on the surface of every one of `others`.
+        let same_surface = |pose: &InitialPose, others: &[InitialPose]| {
+            for c in others {
+                for i in 0..200 {
+                    let (u, v) = (-1.5 + 3.0 * (i % 20) as f64 / 19.0, 0.031 * i as f64);
+                    let p = pose.translation + pose.rotation * shape_at(&pose.shape, u, v);
+                    let f = inside_outside(&c.shape, c.rotation.inverse() * (p - c.translation));
+                    assert!((f - 1.0).abs() < 1e-9, "{c:?}: F = {f}");
+                }
+            }
+        };
+        same_surface(&pose, &candidates);
+        // An ellipsoid with three different axes: its axis candidates still are the ellipsoid
+        // (each semi-axis stays along its world direction).
+        let ellipsoid = InitialPose {
+            shape: SuperquadricParams {
+                a1: 1.0,
+                a2: 0.7,
+                a3: 0.5,
+                ..pose.shape
+            },
+            ..pose
+        };
+        same_surface(&ellipsoid, &similarity_candidates(&ellipsoid)[..2]);
+        // A long box: no section is alike enough for a dual except about the long axis.
+        let long = InitialPose {
+            shape: SuperquadricParams {
+                a1: 0.3,
+                a2: 0.32,
+                a3: 1.0,
+                e1: 0.3,
+                e2: 0.3,
+                ..pose.shape
+            },
+            ..pose
+        };
+        let candidates = similarity_candidates(&long);
+        assert_eq!(candidates.len(), 3);
+        let dual = candidates[2];
+        assert!((dual.shape.e2 - 1.7).abs() < 1e-12 && (dual.shape.e1 - 0.3).abs() < 1e-12);
+    }
 
     #[test]
     fn the_cross_section_dual_turns_a_square_into_a_diamond_through_the_same_points() {

@@ -2,8 +2,9 @@
 //! `--app` mode. It runs the same fit as [`crate::model::fit::fit`], step for step, with every
 //! initial hypothesis as its own entity, simulated in parallel; the result is the same. The
 //! cross-section switch ([`FitOptions::switch_cross_section`]) runs the dual as one more entity,
-//! and the refining stage ([`FitOptions::refine`]) runs on the chosen one, which goes back to its
-//! state before the stage when the refinement is not kept — as `fit` does.
+//! the refining stage ([`FitOptions::refine`]) runs on the chosen one, which goes back to its
+//! state before the stage when the refinement is not kept, and the similarity switch
+//! ([`FitOptions::similarity_switch`]) runs each candidate as one more entity — as `fit` does.
 
 use super::{
     DeformableSqPlugin, FemMesh, FitDriver, GlobalShape, LocalDofs, ModelSettings, RangeData,
@@ -13,7 +14,8 @@ use crate::model::dynamics::ModelState;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_GIVE_UP,
     REFINE_MAX_STEPS, Refinement, Stage, cross_section_dual, global_stages, has_joint_stage,
-    initial_hypotheses, mean_distance, residuals, validate_options, validate_points,
+    initial_hypotheses, mean_distance, residuals, similarity_candidates, validate_options,
+    validate_points, weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
 use crate::model::init::InitialPose;
@@ -120,8 +122,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
                 other_steps += steps_of(&app, e);
                 app.world_mut().despawn(e);
                 (e, score) = (other, other_score);
-                let start = ModelState::new(&tess, dual.translation, dual.rotation, dual.shape);
-                initial = InitialPose::of(&norm.state_to_data(&start));
+                initial = norm.pose_to_data(&tess, &dual);
             } else {
                 other_steps += steps_of(&app, other);
                 app.world_mut().despawn(other);
@@ -130,9 +131,60 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     }
     let mut refinement = None;
     if opts.refine {
-        let (stage, undone_steps) = refine(&mut app, e, opts, other_steps, score, &tess, &unit)?;
+        let cap = opts.max_steps as u64 - other_steps;
+        let (stage, undone_steps) = refine(&mut app, e, cap, score, &tess, &unit)?;
         other_steps += undone_steps;
         refinement = Some(stage);
+    }
+    if opts.similarity_switch {
+        // As in `fit`: each candidate through the global and refining stages, scored with the
+        // chosen fit's inlier probabilities.
+        let weights: Vec<f64> = {
+            let range = app
+                .world()
+                .get::<RangeData>(e)
+                .ok_or(FitError::Degenerate)?;
+            (0..unit.len())
+                .map(|i| range.forces.relative_weight(i))
+                .collect()
+        };
+        let weighted = |app: &App, e: Entity| -> Result<f64, FitError> {
+            let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
+            let mut x = Vec::new();
+            state.node_positions(&tess, &mut x);
+            Ok(weighted_mean_distance(&tess, &x, &unit, &weights))
+        };
+        let mut best_score = weighted(&app, e)?;
+        let mut best: Option<(Entity, InitialPose)> = None;
+        let current = InitialPose::of(&state_of(app.world(), e).ok_or(FitError::Degenerate)?);
+        for candidate in similarity_candidates(&current) {
+            let spent = other_steps + steps_of(&app, e);
+            let cap = (opts.max_steps as u64).saturating_sub(spent);
+            let driver = FitDriver::new(*opts, [Stage::Global], cap);
+            let other = spawn_model(&mut app, opts, &unit, &candidate, driver);
+            run_until_done(&mut app, max_updates)?;
+            if opts.refine {
+                let score = distance_of(&app, other, &tess, &unit)?;
+                other_steps += refine(&mut app, other, cap, score, &tess, &unit)?.1;
+            }
+            let other_score = weighted(&app, other)?;
+            if other_score < best_score {
+                best_score = other_score;
+                if let Some((old, _)) = best.replace((other, candidate)) {
+                    other_steps += steps_of(&app, old);
+                    app.world_mut().despawn(old);
+                }
+            } else {
+                other_steps += steps_of(&app, other);
+                app.world_mut().despawn(other);
+            }
+        }
+        if let Some((other, candidate)) = best {
+            other_steps += steps_of(&app, e);
+            app.world_mut().despawn(e);
+            e = other;
+            initial = norm.pose_to_data(&tess, &candidate);
+        }
     }
     if has_joint_stage(opts) {
         let budget = opts.max_steps as u64 - other_steps;
@@ -210,15 +262,15 @@ fn distance_of(
     Ok(mean_distance(tess, &x, unit))
 }
 
-/// The refining stage on model `e`, as `fit` runs it: checked every [`REFINE_CHECK_EVERY`] of the
-/// model's steps and given up past [`REFINE_GIVE_UP`] times the least distance seen (`score`, the
-/// global stage's, at first); kept when at rest and no farther than `score`, else the model goes
-/// back to its state before the stage. Returns the outcome and the steps that were undone.
+/// The refining stage on model `e`, as `fit` runs it, within `cap` steps of the model in all:
+/// checked every [`REFINE_CHECK_EVERY`] of the model's steps and given up past [`REFINE_GIVE_UP`]
+/// times the least distance seen (`score`, the global stage's, at first); kept when at rest and
+/// no farther than `score`, else the model goes back to its state before the stage. Returns the
+/// outcome and the steps that were undone.
 fn refine(
     app: &mut App,
     e: Entity,
-    opts: &FitOptions,
-    other_steps: u64,
+    cap: u64,
     score: f64,
     tess: &crate::model::fem::Tessellation,
     unit: &[DVec3],
@@ -238,7 +290,7 @@ fn refine(
         return Err(FitError::Degenerate);
     };
     let start = control.steps;
-    let budget = (start + REFINE_MAX_STEPS as u64).min(opts.max_steps as u64 - other_steps);
+    let budget = (start + REFINE_MAX_STEPS as u64).min(cap);
     {
         let mut entity = app.world_mut().entity_mut(e);
         entity
