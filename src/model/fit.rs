@@ -917,8 +917,9 @@ pub(crate) fn run_parallel<I: Sync, R: Send>(
 /// (global and local DOFs), each run to rest; see the module docs. With moments initialisation
 /// the first two stages run from each of the three axis hypotheses of the moments frame and the
 /// one whose surface lies closest to the data goes on. Between choosing and the joint stage, the
-/// options may add the cross-section switch ([`FitOptions::switch_cross_section`]) and the
-/// refining stage ([`FitOptions::refine`]).
+/// options may add the cross-section switch ([`FitOptions::switch_cross_section`]), the
+/// refining stage ([`FitOptions::refine`]) and, after it, the similarity switch
+/// ([`FitOptions::similarity_switch`]).
 pub fn fit(
     points: &[DVec3],
     opts: &FitOptions,
