@@ -392,3 +392,20 @@ fn a_refinement_that_comes_closer_and_then_runs_off_is_given_up_before_its_budge
     assert!(stage.after < stage.before, "{stage:?}");
     assert!(stage.steps < REFINE_MAX_STEPS * 3 / 4, "{stage:?}");
 }
+
+#[test]
+fn the_robust_stages_stay_within_the_step_cap() {
+    use bevy_deformable_sq::synthetic::{CloudRecipe, ground_truth_cloud};
+    // The hypotheses, the switches' candidates, the refining stages and the joint stage share
+    // one step cap; a tight cap ends the fit unconverged instead of overrunning (or underflowing).
+    let c = ground_truth_cloud(3, &CloudRecipe::default());
+    for max_steps in [300, 900, 2000] {
+        let opts = FitOptions {
+            k: 11,
+            max_steps,
+            ..FitOptions::default().robust()
+        };
+        let r = fit(&c.points, &opts, |_| {}).expect("fit");
+        assert!(r.steps <= max_steps, "{} steps against a cap of {max_steps}", r.steps);
+    }
+}

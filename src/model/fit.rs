@@ -181,20 +181,21 @@ impl FitOptions {
     /// (20 generated clouds with 20 % outliers: the same median inlier residual, 35 % more steps
     /// for the refining stage and the cross-section switch). Pair it with [`FitOptions::with_stiffness_from_noise`] for fits with local DOFs.
     pub fn for_data(self) -> Self {
-        let robust = self.robust();
+        let base = if self.global_only {
+            self.robust()
+        } else {
+            Self {
+                point_to_plane: true,
+                ..self
+            }
+        };
         Self {
             outlier_ratio: if self.outlier_ratio > 0.0 {
                 self.outlier_ratio
             } else {
                 ROBUST_OUTLIER_RATIO
             },
-            point_to_plane: true,
-            refine: self.refine || (self.global_only && robust.refine),
-            switch_cross_section: self.switch_cross_section
-                || (self.global_only && robust.switch_cross_section),
-            similarity_switch: self.similarity_switch
-                || (self.global_only && robust.similarity_switch),
-            ..self
+            ..base
         }
     }
 
@@ -718,7 +719,7 @@ struct Relaxation<'a> {
     /// The least mean point-to-surface distance seen so far, when the stage is to be given up (not
     /// at rest) as soon as a check every [`REFINE_CHECK_EVERY`] steps finds the distance more than
     /// [`REFINE_GIVE_UP`] times it: set for the refining stage.
-    give_up_above: Option<f64>,
+    refine_least: Option<f64>,
     /// Set when a run stopped at that check.
     gave_up: bool,
 }
@@ -754,7 +755,7 @@ impl<'a> Relaxation<'a> {
             global_steps: 0,
             substepped: 0,
             reassignments: 0,
-            give_up_above: None,
+            refine_least: None,
             gave_up: false,
         }
     }
@@ -820,7 +821,7 @@ impl<'a> Relaxation<'a> {
             if done {
                 return Ok(true);
             }
-            if let Some(least) = self.give_up_above
+            if let Some(least) = self.refine_least
                 && self.steps.is_multiple_of(REFINE_CHECK_EVERY)
             {
                 let distance = mean_distance(tess, &self.x, &self.range.points);
@@ -828,7 +829,7 @@ impl<'a> Relaxation<'a> {
                     self.gave_up = true;
                     return Ok(false);
                 }
-                self.give_up_above = Some(least.min(distance));
+                self.refine_least = Some(least.min(distance));
             }
         }
         Ok(false)
@@ -846,10 +847,10 @@ impl<'a> Relaxation<'a> {
     ) -> Result<Refinement, FitError> {
         let before = self.clone();
         let budget = (self.steps + REFINE_MAX_STEPS).min(cap);
-        self.give_up_above = Some(score);
+        self.refine_least = Some(score);
         let at_rest = self.run(Stage::Refine, budget, progress)?;
         let gave_up = self.gave_up;
-        (self.give_up_above, self.gave_up) = (None, false);
+        (self.refine_least, self.gave_up) = (None, false);
         let after = mean_distance(self.tess, &self.x, &self.range.points);
         let kept = at_rest && after <= score;
         let steps = self.steps - before.steps;
@@ -973,7 +974,7 @@ pub fn fit(
     let mut other_steps = steps_used - relax.steps;
     let mut refinement = None;
     if opts.refine {
-        let cap = opts.max_steps - other_steps;
+        let cap = opts.max_steps.saturating_sub(other_steps);
         let stage = relax.refine(score, cap, &mut progress)?;
         if !stage.kept {
             other_steps += stage.steps;
@@ -989,7 +990,12 @@ pub fn fit(
         let mut best_score = weighted(&relax.x);
         let mut best = None;
         for candidate in similarity_candidates(&InitialPose::of(&relax.state)) {
-            let spent = other_steps + relax.steps;
+            // The steps of every run so far, the best candidate's included.
+            let spent = other_steps
+                + relax.steps
+                + best
+                    .as_ref()
+                    .map_or(0, |b: &(Relaxation, bool, InitialPose)| b.0.steps);
             let mut other = Relaxation::new(&tess, opts, &unit, &candidate);
             let other_converged = other.run(
                 Stage::Global,
@@ -1021,7 +1027,8 @@ pub fn fit(
         }
     }
     if has_joint_stage(opts) {
-        converged = relax.run(Stage::Joint, opts.max_steps - other_steps, &mut progress)?;
+        let budget = opts.max_steps.saturating_sub(other_steps);
+        converged = relax.run(Stage::Joint, budget, &mut progress)?;
     }
     let state = norm.state_to_data(&relax.state);
     let mut world_x = Vec::new();

@@ -131,7 +131,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     }
     let mut refinement = None;
     if opts.refine {
-        let cap = opts.max_steps as u64 - other_steps;
+        let cap = (opts.max_steps as u64).saturating_sub(other_steps);
         let (stage, undone_steps) = refine(&mut app, e, cap, score, &tess, &unit)?;
         other_steps += undone_steps;
         refinement = Some(stage);
@@ -158,7 +158,10 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         let mut best: Option<(Entity, InitialPose)> = None;
         let current = InitialPose::of(&state_of(app.world(), e).ok_or(FitError::Degenerate)?);
         for candidate in similarity_candidates(&current) {
-            let spent = other_steps + steps_of(&app, e);
+            // The steps of every run so far, the best candidate's included.
+            let spent = other_steps
+                + steps_of(&app, e)
+                + best.as_ref().map_or(0, |(old, _)| steps_of(&app, *old));
             let cap = (opts.max_steps as u64).saturating_sub(spent);
             let driver = FitDriver::new(*opts, [Stage::Global], cap);
             let other = spawn_model(&mut app, opts, &unit, &candidate, driver);
@@ -187,7 +190,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         }
     }
     if has_joint_stage(opts) {
-        let budget = opts.max_steps as u64 - other_steps;
+        let budget = (opts.max_steps as u64).saturating_sub(other_steps);
         app.world_mut()
             .get_mut::<FitDriver>(e)
             .ok_or(FitError::Degenerate)?
