@@ -406,6 +406,10 @@ fn the_robust_stages_stay_within_the_step_cap() {
             ..FitOptions::default().robust()
         };
         let r = fit(&c.points, &opts, |_| {}).expect("fit");
-        assert!(r.steps <= max_steps, "{} steps against a cap of {max_steps}", r.steps);
+        assert!(
+            r.steps <= max_steps,
+            "{} steps against a cap of {max_steps}",
+            r.steps
+        );
     }
 }
