@@ -142,7 +142,7 @@ fn plugin_fit_equals_the_pure_core_step_for_step() {
         if s % settings.reassign_every as u64 == 0 {
             range.reassign(&tess, &x);
         }
-        range.migrate(&tess, &x);
+        range.migrate(&tess, &x, Some(&state.surface()));
         forces.clear(tess.node_count());
         range.accumulate(&tess, &x, &mut forces);
         step(&tess, &mut state, &forces, &settings.dynamics(), &mut ws).unwrap();

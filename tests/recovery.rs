@@ -6,7 +6,7 @@ use bevy_deformable_sq::model::dynamics::{
     DynamicsParams, ModelState, NodalForces, Workspace, step,
 };
 use bevy_deformable_sq::model::fem::Tessellation;
-use bevy_deformable_sq::model::fit::{FitOptions, FitReport, fit, point_distances};
+use bevy_deformable_sq::model::fit::{FitOptions, FitReport, fit, point_distances, residuals};
 use bevy_deformable_sq::model::forces::range::{InfluenceMode, RangeForces};
 use bevy_deformable_sq::model::init::initial_pose;
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
@@ -184,7 +184,7 @@ fn spring_and_strain_energy_fall_under_fitting_steps() {
             );
             e = e_new;
         }
-        range.migrate(&tess, &x);
+        range.migrate(&tess, &x, None);
         let e_new = energy(&range, &state, &x);
         assert!(
             e_new <= e * (1.0 + 1e-9),
@@ -370,12 +370,12 @@ fn with_local_dofs_the_data_defaults_ignore_outliers_that_drag_the_papers_membra
 }
 
 #[test]
-fn a_refinement_that_comes_closer_and_then_runs_off_is_given_up_before_its_budget() {
+fn the_noisy_cylinders_refinement_comes_to_rest_on_the_continuous_surface() {
     use bevy_deformable_sq::io::load_points;
-    use bevy_deformable_sq::model::fit::REFINE_MAX_STEPS;
-    // EMS's noisy cylinder with outliers: refined, it first comes closer to the points, then its
-    // length runs away (cap points' closest surface points slide onto the side wall). The check
-    // against the least distance seen stops it long before its step budget, and it is undone.
+    // EMS's noisy cylinder with outliers. Projected onto the mesh's chords, its refinement first
+    // came closer to the points, then its length ran away, and was given up after 2003 steps; on
+    // the continuous superquadric it comes to rest closer (measured: 95 steps, 0.1254 → 0.1156 of
+    // the RMS radius), and the fit is within 1 % of EMS's (README "Side by side with EMS").
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("assets/data/ems/noisy_pointCloud_example_2.ply");
     let points = load_points(&path).expect("the shipped EMS cloud");
@@ -384,13 +384,13 @@ fn a_refinement_that_comes_closer_and_then_runs_off_is_given_up_before_its_budge
         ..Default::default()
     }
     .robust();
-    let stage = fit(&points, &robust, |_| {})
-        .expect("fit")
-        .refinement
-        .expect("the robust options refine");
-    assert!(stage.gave_up && !stage.kept, "{stage:?}");
-    assert!(stage.after < stage.before, "{stage:?}");
-    assert!(stage.steps < REFINE_MAX_STEPS * 3 / 4, "{stage:?}");
+    let report = fit(&points, &robust, |_| {}).expect("fit");
+    let stage = report.refinement.expect("the robust options refine");
+    assert!(stage.kept && !stage.gave_up, "{stage:?}");
+    assert!(stage.after < 0.95 * stage.before, "{stage:?}");
+    assert!(stage.steps < 1000, "{stage:?}");
+    // EMS's fit lies 0.01473 of the diagonal from the points (compare_ems).
+    assert!(report.residuals.mean < 0.0150, "{:?}", report.residuals);
 }
 
 #[test]
@@ -412,4 +412,32 @@ fn the_robust_stages_stay_within_the_step_cap() {
             r.steps
         );
     }
+}
+
+#[test]
+fn the_refined_superquadric_lies_on_a_clean_clouds_points_between_the_nodes() {
+    // EMS's partial_pointCloud_example_2: 757 noise-free points on one side of a superquadric. The
+    // refining stage projects them onto the continuous superquadric, not the 963-node mesh's
+    // chords, so the fitted superquadric passes through them between the nodes: measured on a
+    // k = 151 tessellation (22 803 nodes), 0.00003 of the diagonal, as close as EMS's own fit
+    // (0.00003); projected onto the chords it was 0.0006.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("assets/data/ems/partial_pointCloud_example_2.ply");
+    let points = bevy_deformable_sq::io::load_points(&path).expect("shipped cloud");
+    let opts = FitOptions {
+        global_only: true,
+        ..Default::default()
+    }
+    .robust();
+    let report = fit(&points, &opts, |_| {}).expect("fit");
+    assert!(report.refinement.is_some_and(|r| r.kept));
+    let fine = Tessellation::new(151);
+    let s = &report.state;
+    let mut x = Vec::new();
+    ModelState::new(&fine, s.translation, s.rotation, s.shape).node_positions(&fine, &mut x);
+    let on_fine = residuals(&fine, &x, &points);
+    assert!(
+        on_fine.mean < 1e-4 && on_fine.p95 < 2e-4,
+        "the refined superquadric lies {on_fine:?} from the points"
+    );
 }

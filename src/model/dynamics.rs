@@ -46,7 +46,9 @@ use super::deform::{GlobalDeformation, NUM_DEFORM};
 use super::fem::{ElementPoint, GridPowers, Tessellation};
 use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
 use super::linalg::cholesky_solve;
-use super::superquadric::{NUM_SHAPE, SuperquadricParams};
+use super::superquadric::{
+    NUM_SHAPE, SignedPowers, SuperquadricParams, shape_at, shape_from_powers,
+};
 use bevy::math::{DMat3, DQuat, DVec3};
 
 /// Number of global degrees of freedom: q_c (3) + q_θ (4) + q_s (6) + q_T (4, tapering and
@@ -99,6 +101,17 @@ impl ModelState {
             && self.displacement.iter().all(|d| d.is_finite())
     }
 
+    /// The continuous surface of this state ([`ModelSurface`]).
+    pub fn surface(&self) -> ModelSurface<'_> {
+        ModelSurface::new(
+            self.translation,
+            self.rotation,
+            self.shape,
+            self.deformation,
+            &self.displacement,
+        )
+    }
+
     /// World positions x_i = c + R p_i of every node (eq. 2).
     pub fn node_positions(&self, tess: &Tessellation, out: &mut Vec<DVec3>) {
         node_positions(
@@ -110,6 +123,96 @@ impl ModelState {
             &self.displacement,
             out,
         );
+    }
+}
+
+/// The model's continuous surface x(u, v) = c + R (T(s(u, v)) + d(u, v)) (eqs. 2, 3): the exact
+/// superquadric s of eq. (4) under the global deformation T, plus the local displacement d
+/// interpolated by the shape functions (eq. 7). It agrees with the nodes' positions at the
+/// nodes; between them it is the paper's surface, where the triangles of the mesh are chords of
+/// it. Migrating points of influence sit on it (`forces::range`).
+#[derive(Clone, Copy, Debug)]
+pub struct ModelSurface<'a> {
+    translation: DVec3,
+    rotation: DMat3,
+    shape: SuperquadricParams,
+    deformation: GlobalDeformation,
+    displacement: &'a [DVec3],
+}
+
+impl<'a> ModelSurface<'a> {
+    /// The surface of a model with these parts (as [`node_positions`] takes them).
+    pub fn new(
+        translation: DVec3,
+        rotation: DQuat,
+        shape: SuperquadricParams,
+        deformation: GlobalDeformation,
+        displacement: &'a [DVec3],
+    ) -> Self {
+        Self {
+            translation,
+            rotation: rotation_matrix(rotation),
+            shape,
+            deformation,
+            displacement,
+        }
+    }
+
+    /// x(u, v) at material coordinates (u, v) that lie at `at` of their element.
+    pub fn at(&self, u: f64, v: f64, at: &ElementPoint) -> DVec3 {
+        let mut s = shape_at(&self.shape, u, v);
+        if !self.deformation.is_identity() {
+            s = self.deformation.apply(s, self.shape.semi_axes().z);
+        }
+        let d = at.interpolate(|k| self.displacement.get(k).copied().unwrap_or_default());
+        self.translation + self.rotation * (s + d)
+    }
+
+    /// x(u, v) and its tangents ∂x/∂u, ∂x/∂v, or the tangents `None` on the coordinate lines
+    /// through the axes (cos or sin of u or v zero), where the signed powers' derivatives are
+    /// infinite or undefined for exponents below 1. From eq. (4): d/du sgn(c)|c|^ε with c = cos u
+    /// is −ε (sin u / cos u) C_u^ε, and likewise for the other three powers; T's Jacobian and the
+    /// shape functions' derivatives carry them through the deformation and the displacement.
+    pub fn with_tangents(
+        &self,
+        u: f64,
+        v: f64,
+        at: &ElementPoint,
+    ) -> (DVec3, Option<(DVec3, DVec3)>) {
+        let q = &self.shape;
+        let p = SignedPowers::at(q, u, v);
+        let s = shape_from_powers(q, &p);
+        let ((su, cu), (sv, cv)) = (u.sin_cos(), v.sin_cos());
+        let regular = [su, cu, sv, cv].iter().all(|t| t.abs() >= 1e-9);
+        let scaled = q.a * DVec3::new(q.a1, q.a2, q.a3);
+        let ds = regular.then(|| {
+            let dcu = -q.e1 * su / cu * p.cu;
+            let dsu = q.e1 * cu / su * p.su;
+            let dcv = -q.e2 * sv / cv * p.cv;
+            let dsv = q.e2 * cv / sv * p.sv;
+            (
+                scaled * DVec3::new(dcu * p.cv, dcu * p.sv, dsu),
+                scaled * DVec3::new(p.cu * dcv, p.cu * dsv, 0.0),
+            )
+        });
+        let (t, ds) = if self.deformation.is_identity() {
+            (s, ds)
+        } else {
+            let jac = self.deformation.jacobian(s, q.semi_axes().z);
+            (
+                jac.value,
+                ds.map(|(a, b)| (jac.d_point * a, jac.d_point * b)),
+            )
+        };
+        let disp = |k: usize| self.displacement.get(k).copied().unwrap_or_default();
+        let d = at.interpolate(disp);
+        let x = self.translation + self.rotation * (t + d);
+        let tangents = ds.map(|(a, b)| {
+            let du: DVec3 = (0..4).map(|k| at.du[k] * disp(at.nodes[k] as usize)).sum();
+            let dv: DVec3 = (0..4).map(|k| at.dv[k] * disp(at.nodes[k] as usize)).sum();
+            (self.rotation * (a + du), self.rotation * (b + dv))
+        });
+        (x, tangents)
     }
 }
 
@@ -1210,6 +1313,75 @@ pub(crate) mod tests {
             .zip(&x)
             .map(|(f, x)| f.dot(*x))
             .sum::<f64>()
+    }
+
+    #[test]
+    fn the_continuous_surface_passes_through_the_nodes_and_lies_on_the_superquadric_between() {
+        let tess = Tessellation::new(9);
+        // Through the nodes, tapered, bent and displaced.
+        let state = deformed_state(&tess);
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        let surface = state.surface();
+        for (i, [u, v]) in tess.uv.iter().enumerate() {
+            let at = ElementPoint::at_node(i as u32);
+            let d = surface.at(*u, *v, &at).distance(x[i]);
+            assert!(d < 1e-12, "node {i} at ({u}, {v}) is {d} off the surface");
+        }
+        // Between the nodes, undeformed and undisplaced: on the superquadric (F = 1) and outside
+        // the mesh's chords.
+        let state = ModelState::new(&tess, state.translation, state.rotation, state.shape);
+        state.node_positions(&tess, &mut x);
+        let (surface, r) = (state.surface(), rotation_matrix(state.rotation));
+        let mut bulge: f64 = 0.0;
+        for i in 0..40 {
+            let (u, v) = (
+                -1.5 + 3.0 * (i as f64 + 0.37) / 40.0,
+                -3.1 + 0.155 * i as f64,
+            );
+            let at = tess.locate(u, v);
+            let p = surface.at(u, v, &at);
+            let local = r.transpose() * (p - state.translation);
+            let f = crate::model::superquadric::inside_outside(&state.shape, local);
+            assert!((f - 1.0).abs() < 1e-9, "F = {f} at ({u}, {v})");
+            bulge = bulge.max(p.distance(at.interpolate(|k| x[k])));
+        }
+        assert!(bulge > 1e-3, "the mesh's chords are the surface: {bulge}");
+    }
+
+    #[test]
+    fn the_continuous_surfaces_tangents_match_central_differences() {
+        let tess = Tessellation::new(9);
+        for state in [test_state(&tess), deformed_state(&tess)] {
+            let surface = state.surface();
+            let x = |u: f64, v: f64| surface.at(u, v, &tess.locate(u, v));
+            let h = 1e-6;
+            for i in 0..25 {
+                // Points inside elements, off the coordinate lines through the axes.
+                let (u, v) = (
+                    -1.4 + 2.8 * (i as f64 + 0.31) / 25.0,
+                    -3.0 + 0.2437 * i as f64,
+                );
+                let at = tess.locate(u, v);
+                let (p, tangents) = surface.with_tangents(u, v, &at);
+                assert!(p.distance(x(u, v)) < 1e-12);
+                let (tu, tv) = tangents.expect("regular point");
+                let fu = (x(u + h, v) - x(u - h, v)) / (2.0 * h);
+                let fv = (x(u, v + h) - x(u, v - h)) / (2.0 * h);
+                let scale = 1.0 + fu.length().max(fv.length());
+                assert!(
+                    (tu - fu).length() < 1e-6 * scale,
+                    "∂x/∂u {tu} vs {fu} at ({u}, {v})"
+                );
+                assert!(
+                    (tv - fv).length() < 1e-6 * scale,
+                    "∂x/∂v {tv} vs {fv} at ({u}, {v})"
+                );
+            }
+            // On the coordinate lines through the axes the tangents are not given.
+            let at = tess.locate(0.3, 0.0);
+            assert!(surface.with_tangents(0.3, 0.0, &at).1.is_none());
+        }
     }
 
     #[test]

@@ -55,8 +55,25 @@ pub const REFINE_CHECK_EVERY: u32 = 250;
 /// up and undone at once instead of at the end of its [`REFINE_MAX_STEPS`]. On scans of objects
 /// that are no superquadric, the outlier weights let it drop whole limbs (the bunny's ears) and
 /// the one-sided distance it minimises keeps falling while the model runs off; on a cylinder with
-/// outliers (EMS's `noisy_pointCloud_example_2`) it first comes closer, then its length runs away.
+/// outliers (EMS's `noisy_pointCloud_example_2`), projected onto the mesh's chords, it first came
+/// closer, then its length ran away.
 pub const REFINE_GIVE_UP: f64 = 1.01;
+
+/// A refinement is also given up at a check when the superquadric's longest semi-axis has grown
+/// past this multiple of its length at the start of the stage. The refinement polishes a fit
+/// that the global stage has placed and sized; a model that grows by half again is the other way
+/// a cylinder's length runs away with its rim points, the mean distance still falling as it
+/// goes (on EMS's `noisy_pointCloud_example_3`, two similarity candidates grew 3× in 3000 steps).
+pub const REFINE_MAX_GROWTH: f64 = 1.5;
+
+/// The refining stage's check every [`REFINE_CHECK_EVERY`] steps, shared by [`fit`] and the
+/// plugin's fit: given the mean `distance` of the points now, the `least` seen before, and the
+/// longest semi-axis `longest` now and `start` at the start of the stage, returns the new least,
+/// or `None` to give the refinement up ([`REFINE_GIVE_UP`], [`REFINE_MAX_GROWTH`]).
+pub fn refine_check(distance: f64, least: f64, longest: f64, start: f64) -> Option<f64> {
+    (distance <= REFINE_GIVE_UP * least && longest <= REFINE_MAX_GROWTH * start)
+        .then(|| least.min(distance))
+}
 
 /// How the first superquadric is placed.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -720,6 +737,8 @@ struct Relaxation<'a> {
     /// at rest) as soon as a check every [`REFINE_CHECK_EVERY`] steps finds the distance more than
     /// [`REFINE_GIVE_UP`] times it: set for the refining stage.
     refine_least: Option<f64>,
+    /// The longest semi-axis at the start of the refining stage ([`REFINE_MAX_GROWTH`]).
+    refine_start: f64,
     /// Set when a run stopped at that check.
     gave_up: bool,
 }
@@ -756,6 +775,7 @@ impl<'a> Relaxation<'a> {
             substepped: 0,
             reassignments: 0,
             refine_least: None,
+            refine_start: 0.0,
             gave_up: false,
         }
     }
@@ -778,7 +798,8 @@ impl<'a> Relaxation<'a> {
         self.reassignments += 1;
         self.ws.prepare(tess, &self.state);
         while self.steps < budget {
-            self.range.migrate(tess, &self.x);
+            self.range
+                .migrate(tess, &self.x, Some(&self.state.surface()));
             self.forces.clear(tess.node_count());
             self.range.accumulate(tess, &self.x, &mut self.forces);
             let report = step_prepared(
@@ -825,11 +846,12 @@ impl<'a> Relaxation<'a> {
                 && self.steps.is_multiple_of(REFINE_CHECK_EVERY)
             {
                 let distance = mean_distance(tess, &self.x, &self.range.points);
-                if distance > REFINE_GIVE_UP * least {
+                let longest = self.state.shape.semi_axes().max_element();
+                self.refine_least = refine_check(distance, least, longest, self.refine_start);
+                if self.refine_least.is_none() {
                     self.gave_up = true;
                     return Ok(false);
                 }
-                self.refine_least = Some(least.min(distance));
             }
         }
         Ok(false)
@@ -848,6 +870,7 @@ impl<'a> Relaxation<'a> {
         let before = self.clone();
         let budget = (self.steps + REFINE_MAX_STEPS).min(cap);
         self.refine_least = Some(score);
+        self.refine_start = self.state.shape.semi_axes().max_element();
         let at_rest = self.run(Stage::Refine, budget, progress)?;
         let gave_up = self.gave_up;
         (self.refine_least, self.gave_up) = (None, false);
@@ -1181,6 +1204,17 @@ mod tests {
     use super::*;
     use crate::model::superquadric::{SuperquadricParams, inside_outside, shape_at};
     use bevy::math::DQuat;
+
+    #[test]
+    fn a_refinement_is_given_up_when_it_runs_off_or_grows_too_long() {
+        // Coming closer lowers the least distance; a little farther keeps it.
+        assert_eq!(refine_check(0.8, 1.0, 2.0, 2.0), Some(0.8));
+        assert_eq!(refine_check(1.005, 1.0, 2.0, 2.0), Some(1.0));
+        // More than 1 % farther than the least, or half again as long: given up.
+        assert_eq!(refine_check(1.02, 1.0, 2.0, 2.0), None);
+        assert_eq!(refine_check(0.5, 1.0, 3.01, 2.0), None);
+        assert_eq!(refine_check(0.5, 1.0, 2.99, 2.0), Some(0.5));
+    }
 
     #[test]
     fn similarity_candidates_of_a_round_shape_are_the_same_surface() {

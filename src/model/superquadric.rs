@@ -190,6 +190,19 @@ impl SignedPowers {
             sv: spow(t.sv, q.e2),
         }
     }
+
+    /// The signed powers at material coordinates (u, v), with the cosines and sines snapped as
+    /// [`Trig::new`] snaps them but without its logarithms: what evaluating s at one point needs.
+    pub fn at(q: &SuperquadricParams, u: f64, v: f64) -> Self {
+        let snap = |x: f64| if x.abs() < 1e-12 { 0.0 } else { x };
+        let ((su, cu), (sv, cv)) = (u.sin_cos(), v.sin_cos());
+        Self {
+            cu: spow(snap(cu), q.e1),
+            su: spow(snap(su), q.e1),
+            cv: spow(snap(cv), q.e2),
+            sv: spow(snap(sv), q.e2),
+        }
+    }
 }
 
 /// s (eq. 4) from precomputed signed powers.
@@ -199,7 +212,7 @@ pub fn shape_from_powers(q: &SuperquadricParams, p: &SignedPowers) -> DVec3 {
 
 /// The reference shape s(u, v; q_s) of eq. (4) at material coordinates (u, v).
 pub fn shape_at(q: &SuperquadricParams, u: f64, v: f64) -> DVec3 {
-    shape(q, &Trig::new(u, v))
+    shape_from_powers(q, &SignedPowers::at(q, u, v))
 }
 
 /// The Jacobian J = ∂s/∂q_s (eq. 9), as its six columns ∂s/∂(a, a1, a2, a3, ε1, ε2).

@@ -7,7 +7,9 @@
 //! them as they are.
 
 use crate::model::deform::GlobalDeformation;
-use crate::model::dynamics::{DynamicsParams, FreeDofs, ModelState, NodalForces, Workspace};
+use crate::model::dynamics::{
+    DynamicsParams, FreeDofs, ModelState, ModelSurface, NodalForces, Workspace,
+};
 use crate::model::fem::Tessellation;
 use crate::model::fit::{FitOptions, Stage, StageClock};
 use crate::model::forces::range::{InfluenceMode, RangeForces};
@@ -599,6 +601,21 @@ pub fn world_positions(
         &local.displacement,
         out,
     );
+}
+
+/// The model's continuous surface ([`ModelSurface`]) from its components.
+pub fn model_surface<'a>(
+    rigid: &RigidState,
+    shape: &GlobalShape,
+    local: &'a LocalDofs,
+) -> ModelSurface<'a> {
+    ModelSurface::new(
+        rigid.translation,
+        rigid.rotation,
+        (*shape).into(),
+        shape.deformation(),
+        &local.displacement,
+    )
 }
 
 /// Assembles the core's [`ModelState`] from the components (moving the displacement out).

@@ -12,9 +12,9 @@ use super::{
 };
 use crate::model::dynamics::ModelState;
 use crate::model::fit::{
-    FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_GIVE_UP,
-    REFINE_MAX_STEPS, Refinement, Stage, cross_section_dual, global_stages, has_joint_stage,
-    initial_hypotheses, mean_distance, residuals, similarity_candidates, validate_options,
+    FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
+    Refinement, Stage, cross_section_dual, global_stages, has_joint_stage, initial_hypotheses,
+    mean_distance, refine_check, residuals, similarity_candidates, validate_options,
     validate_points, weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
@@ -266,10 +266,10 @@ fn distance_of(
 }
 
 /// The refining stage on model `e`, as `fit` runs it, within `cap` steps of the model in all:
-/// checked every [`REFINE_CHECK_EVERY`] of the model's steps and given up past [`REFINE_GIVE_UP`]
-/// times the least distance seen (`score`, the global stage's, at first); kept when at rest and
-/// no farther than `score`, else the model goes back to its state before the stage. Returns the
-/// outcome and the steps that were undone.
+/// checked every [`REFINE_CHECK_EVERY`] of the model's steps by [`refine_check`] (given up past
+/// [`crate::model::fit::REFINE_GIVE_UP`] times the least distance seen, `score` at first, or when
+/// the model grows too long); kept when at rest and no farther than `score`, else the model goes
+/// back to its state before the stage. Returns the outcome and the steps that were undone.
 fn refine(
     app: &mut App,
     e: Entity,
@@ -293,6 +293,9 @@ fn refine(
         return Err(FitError::Degenerate);
     };
     let start = control.steps;
+    let start_extent = crate::model::superquadric::SuperquadricParams::from(shape)
+        .semi_axes()
+        .max_element();
     let budget = (start + REFINE_MAX_STEPS as u64).min(cap);
     {
         let mut entity = app.world_mut().entity_mut(e);
@@ -327,11 +330,18 @@ fn refine(
         let at_rest = driver.done && driver.converged;
         if !at_rest && seen.is_multiple_of(REFINE_CHECK_EVERY as u64) {
             let distance = distance_of(app, e, tess, unit)?;
-            if distance > REFINE_GIVE_UP * least {
-                gave_up = true;
-                break;
+            let longest = state_of(app.world(), e)
+                .ok_or(FitError::Degenerate)?
+                .shape
+                .semi_axes()
+                .max_element();
+            match refine_check(distance, least, longest, start_extent) {
+                Some(l) => least = l,
+                None => {
+                    gave_up = true;
+                    break;
+                }
             }
-            least = least.min(distance);
         }
         if driver.done {
             break;

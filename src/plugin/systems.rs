@@ -209,7 +209,8 @@ pub fn gather_forces(
             world_positions(tess, rigid, shape, local, &mut scratch.node_x);
             scratch.forces.clear(tess.node_count());
             if let Some(mut range) = range {
-                range.forces.migrate(tess, &scratch.node_x);
+                let surface = model_surface(rigid, shape, local);
+                range.forces.migrate(tess, &scratch.node_x, Some(&surface));
                 range
                     .forces
                     .accumulate(tess, &scratch.node_x, &mut scratch.forces);

@@ -12,7 +12,10 @@
 //! [`nearest_indices_brute`] (tested). [`InfluenceMode::Migrating`] is the paper's alternative
 //! (Fig. 3): each point of influence slides over the surface by the tangential components of its
 //! force until they vanish, at the foot of the perpendicular from r; a reassignment then only
-//! replaces it when the nearest node is closer.
+//! replaces it when the nearest node is closer. Given the model's continuous surface
+//! ([`ModelSurface`], the paper's x(u)), the points slide over it with its own tangents and a
+//! whole 2×2 Gauss–Newton move, not over the mesh's triangles, whose chords would bias a fit by
+//! up to h²κ/8 ([`RangeForces::migrate`]).
 //!
 //! **Coverage springs (beyond the paper).** Data-to-model springs leave every part of the model
 //! that no data point chose free: fitted from an initial state larger than the data, a part with
@@ -51,7 +54,7 @@
 //! μ > 0 matters: with μ = 0 the model is free to stretch along the data between reattachments
 //! (on EMS's noisy clouds it grew without bound); μ = 0.3 fitted all six EMS clouds to rest.
 
-use crate::model::dynamics::NodalForces;
+use crate::model::dynamics::{ModelSurface, NodalForces};
 use crate::model::fem::{ElementPoint, Tessellation};
 use bevy::math::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -103,6 +106,13 @@ pub struct RangeForces {
     /// spring pulls only along the surface normal at its point of influence, and acts on the
     /// global DOFs only. `false` (the default) gives the paper's springs.
     pub plane: bool,
+    /// How far each point of influence lies off the mesh's triangles, on the model's continuous
+    /// surface ([`ModelSurface`]): x(u_r) − Σ N_k x_k as the last [`Self::migrate`] given that
+    /// surface found it. Added to the mesh's point until the next migration (the offset changes
+    /// only as slowly as the global shape), so that the springs, their energy and the weights see
+    /// the same point. Empty when points of influence lie on the triangles. A reassignment onto a
+    /// node sets its entry to zero.
+    pub surface_offset: Vec<DVec3>,
 }
 
 /// The tangential stiffness of a point-to-plane spring as a fraction μ of its normal stiffness:
@@ -155,6 +165,12 @@ pub const SIGMA_FLOOR: f64 = 1e-3;
 /// Default coverage-spring density as a fraction of β.
 pub const DEFAULT_COVERAGE: f64 = 0.1;
 
+/// A migration onto the continuous surface ([`RangeForces::migrate`]) leaves a point where it is
+/// when its move along the surface would be shorter than this fraction of its distance to its
+/// datum: the point is at its foot to within a relative 10⁻⁶ of that distance (the neglected move
+/// enters it squared), and trying the move would cost a second evaluation of the surface.
+pub const MIGRATION_AT_FOOT: f64 = 1e-3;
+
 /// For every query point, the index of the nearest point of `nodes` (usually the model's nodes),
 /// by a k-d tree over `nodes`. Falls back to [`nearest_indices_brute`] if the tree cannot be built.
 pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
@@ -202,7 +218,16 @@ impl RangeForces {
             node_targets: Vec::new(),
             robust: None,
             plane: false,
+            surface_offset: Vec::new(),
         }
+    }
+
+    /// Where point `i`'s point of influence is, for nodes at `node_x`: interpolated on the mesh,
+    /// plus its [`Self::surface_offset`] after a migration onto the continuous surface.
+    #[inline]
+    fn influence_x(&self, i: usize, node_x: &[DVec3]) -> DVec3 {
+        let x = self.influence[i].at.interpolate(|k| node_x[k]);
+        self.surface_offset.get(i).map_or(x, |d| x + *d)
     }
 
     /// The weight of point `i` relative to the paper's equal weights: m p_i / Σ p with the
@@ -254,6 +279,7 @@ impl RangeForces {
         let mut changed = 0;
         if fresh {
             self.influence.clear();
+            self.surface_offset.clear();
         }
         for (i, &n) in nearest.iter().enumerate() {
             let [u, v] = tess.uv[n as usize];
@@ -267,21 +293,21 @@ impl RangeForces {
                 changed += 1;
                 continue;
             }
-            let current = &mut self.influence[i];
             let replace = match self.mode {
                 InfluenceMode::NearestNode => {
-                    current.at.nodes[0] != n || current.at.weights[0] != 1.0
+                    let current = &self.influence[i].at;
+                    current.nodes[0] != n || current.weights[0] != 1.0
                 }
                 InfluenceMode::Migrating { .. } => {
-                    let here = current
-                        .at
-                        .interpolate(|k| node_x[k])
-                        .distance_squared(self.points[i]);
+                    let here = self.influence_x(i, node_x).distance_squared(self.points[i]);
                     node_x[n as usize].distance_squared(self.points[i]) < here
                 }
             };
             if replace {
-                *current = candidate;
+                self.influence[i] = candidate;
+                if let Some(d) = self.surface_offset.get_mut(i) {
+                    *d = DVec3::ZERO;
+                }
                 changed += 1;
             }
         }
@@ -292,19 +318,16 @@ impl RangeForces {
     /// The E-step of the robust weights: each point's inlier probability from its distance to its
     /// point of influence, then σ² from the weighted distances, [`EM_ITERATIONS`] times.
     fn update_robust(&mut self, node_x: &[DVec3]) {
+        let m = self.points.len();
+        if self.robust.is_none() || m == 0 {
+            return;
+        }
+        let d2: Vec<f64> = (0..m)
+            .map(|i| self.influence_x(i, node_x).distance_squared(self.points[i]))
+            .collect();
         let Some(rb) = self.robust.as_mut() else {
             return;
         };
-        let m = self.points.len();
-        if m == 0 {
-            return;
-        }
-        let d2: Vec<f64> = self
-            .points
-            .iter()
-            .zip(&self.influence)
-            .map(|(r, inf)| inf.at.interpolate(|k| node_x[k]).distance_squared(*r))
-            .collect();
         let (lo, hi) = self.points.iter().fold(
             (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
             |(lo, hi), p| (lo.min(*p), hi.max(*p)),
@@ -358,7 +381,7 @@ impl RangeForces {
             for (i, (r, inf)) in self.points.iter().zip(&self.influence).enumerate() {
                 let w = w_of(i);
                 let at = &inf.at;
-                let x = at.interpolate(|k| node_x[k]);
+                let x = self.influence_x(i, node_x);
                 let n = at.interpolate(|k| out.plane_normal[k]).normalize_or_zero();
                 let f = w * plane_spring(*r - x, n);
                 for k in 0..4 {
@@ -374,7 +397,7 @@ impl RangeForces {
         } else {
             for (i, (r, inf)) in self.points.iter().zip(&self.influence).enumerate() {
                 let w = w_of(i);
-                let x = inf.at.interpolate(|k| node_x[k]);
+                let x = self.influence_x(i, node_x);
                 out.add(&inf.at, w * (*r - x), w);
             }
         }
@@ -420,7 +443,7 @@ impl RangeForces {
                 } else {
                     DVec3::ZERO
                 };
-                self.relative_weight(i) * sq(*r - inf.at.interpolate(|k| node_x[k]), n)
+                self.relative_weight(i) * sq(*r - self.influence_x(i, node_x), n)
             })
             .sum();
         let cover: f64 = self
@@ -443,19 +466,70 @@ impl RangeForces {
     /// ∂x/∂u, ∂x/∂v at its point of influence and move (u_r, v_r) by `rate` times the move that
     /// would cancel each projection, at most one element per step, halving the move while it would
     /// take the point farther from its datum. Only in migrating mode.
-    pub fn migrate(&mut self, tess: &Tessellation, node_x: &[DVec3]) {
+    ///
+    /// With `surface`, the points of influence lie on the model's continuous surface
+    /// ([`ModelSurface`], the paper's x(u)), with its own tangents, and
+    /// [`Self::surface_offset`] keeps them there; without it, on the mesh's triangles, whose
+    /// chords of a curved model lie inside it by up to h² κ / 8 (element size h, curvature κ): a
+    /// bias of the fit on a par with the data's own distances once those are well below the
+    /// element size. A point whose move would be shorter than [`MIGRATION_AT_FOOT`] of its
+    /// distance stays where it is.
+    pub fn migrate(
+        &mut self,
+        tess: &Tessellation,
+        node_x: &[DVec3],
+        surface: Option<&ModelSurface>,
+    ) {
         let InfluenceMode::Migrating { rate } = self.mode else {
+            self.surface_offset.clear();
             return;
         };
-        for (r, inf) in self.points.iter().zip(self.influence.iter_mut()) {
-            let at = &inf.at;
-            let x = at.interpolate(|k| node_x[k]);
-            let tu: DVec3 = (0..4)
-                .map(|i| at.du[i] * node_x[at.nodes[i] as usize])
-                .sum();
-            let tv: DVec3 = (0..4)
-                .map(|i| at.dv[i] * node_x[at.nodes[i] as usize])
-                .sum();
+        // On a node the surface is the node (to rounding, which must not make a point that
+        // migration cannot move look farther than its node and be reassigned every time).
+        let position = |u: f64, v: f64, at: &ElementPoint| match surface {
+            Some(s) if at.weights[0] != 1.0 => s.at(u, v, at),
+            _ => at.interpolate(|k| node_x[k]),
+        };
+        let m = self.points.len();
+        if surface.is_some() {
+            self.surface_offset.resize(m, DVec3::ZERO);
+        } else {
+            self.surface_offset.clear();
+        }
+        for (i, (r, inf)) in self
+            .points
+            .iter()
+            .zip(self.influence.iter_mut())
+            .enumerate()
+        {
+            // A point reassigned onto a node has no shape-function derivatives there; its
+            // element's are the mesh's tangents.
+            let located;
+            let at = if inf.at.weights[0] == 1.0 {
+                located = tess.locate(inf.u, inf.v);
+                &located
+            } else {
+                &inf.at
+            };
+            let mesh_tangent = |d: &[f64; 4]| -> DVec3 {
+                (0..4).map(|k| d[k] * node_x[at.nodes[k] as usize]).sum()
+            };
+            let (x, tangents) = match surface {
+                Some(s) => {
+                    let (x, t) = s.with_tangents(inf.u, inf.v, at);
+                    let on_node = inf.at.weights[0] == 1.0;
+                    (
+                        if on_node {
+                            node_x[inf.at.nodes[0] as usize]
+                        } else {
+                            x
+                        },
+                        t,
+                    )
+                }
+                None => (inf.at.interpolate(|k| node_x[k]), None),
+            };
+            let (tu, tv) = tangents.unwrap_or_else(|| (mesh_tangent(&at.du), mesh_tangent(&at.dv)));
             let f = *r - x;
             let step = |t: DVec3, h: f64| {
                 let t2 = t.length_squared();
@@ -465,19 +539,48 @@ impl RangeForces {
                     0.0
                 }
             };
-            let (mut du, mut dv) = (step(tu, tess.h_u), step(tv, tess.h_v));
-            // Descent safeguard: across element edges the tangents jump, and a full move can
-            // overshoot a kink of the faceted surface; halve it until the distance does not grow.
-            let here = f.length_squared();
-            for _ in 0..4 {
-                let (u, v) = Tessellation::wrap(inf.u + du, inf.v + dv);
-                let at = tess.locate(u, v);
-                if at.interpolate(|k| node_x[k]).distance_squared(*r) <= here {
-                    *inf = Influence { u, v, at };
-                    break;
+            let (mut du, mut dv, at_foot) = match surface {
+                None => (step(tu, tess.h_u), step(tv, tess.h_v), false),
+                Some(_) => {
+                    // The whole Gauss–Newton move: the superquadric's tangents are not
+                    // orthogonal, least of all near its edges.
+                    let (uu, uv, vv) = (tu.dot(tu), tu.dot(tv), tv.dot(tv));
+                    let (fu, fv) = (f.dot(tu), f.dot(tv));
+                    let det = uu * vv - uv * uv;
+                    let (du, dv) = if det > 1e-12 * uu * vv {
+                        ((vv * fu - uv * fv) / det, (uu * fv - uv * fu) / det)
+                    } else {
+                        (step(tu, f64::INFINITY), step(tv, f64::INFINITY))
+                    };
+                    // At most one element, in the move's own direction.
+                    let scale = (tess.h_u / du.abs()).min(tess.h_v / dv.abs()).min(1.0);
+                    let normal = tu.cross(tv).normalize_or_zero();
+                    let along = f - f.dot(normal) * normal;
+                    let at_foot = along.length() <= MIGRATION_AT_FOOT * f.length();
+                    (rate * scale * du, rate * scale * dv, at_foot)
                 }
-                du *= 0.5;
-                dv *= 0.5;
+            };
+            let mut foot = x;
+            if !at_foot {
+                // Descent safeguard: across element edges the mesh's tangents jump, and a full
+                // move can overshoot a kink of the faceted surface or a sharp edge of the
+                // superquadric; halve it until the distance does not grow.
+                let here = f.length_squared();
+                for _ in 0..4 {
+                    let (u, v) = Tessellation::wrap(inf.u + du, inf.v + dv);
+                    let at = tess.locate(u, v);
+                    let moved = position(u, v, &at);
+                    if moved.distance_squared(*r) <= here {
+                        *inf = Influence { u, v, at };
+                        foot = moved;
+                        break;
+                    }
+                    du *= 0.5;
+                    dv *= 0.5;
+                }
+            }
+            if let Some(d) = self.surface_offset.get_mut(i) {
+                *d = foot - inf.at.interpolate(|k| node_x[k]);
             }
         }
     }
@@ -573,7 +676,7 @@ mod tests {
             .map(|(inf, r)| inf.at.interpolate(|k| x[k]).distance(*r))
             .collect();
         for _ in 0..100 {
-            range.migrate(&tess, &x);
+            range.migrate(&tess, &x, None);
         }
         for ((inf, r), b) in range.influence.iter().zip(&pts).zip(before) {
             let xs = inf.at.interpolate(|k| x[k]);
@@ -595,6 +698,51 @@ mod tests {
                 "migrated distance {d}, minimum {best}, nearest node {b}"
             );
         }
+    }
+
+    #[test]
+    fn migration_onto_the_continuous_surface_reaches_its_foot_past_the_chords() {
+        let tess = Tessellation::new(10);
+        let state = ModelState::new(
+            &tess,
+            DVec3::ZERO,
+            DQuat::IDENTITY,
+            SuperquadricParams::default(),
+        );
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        // Points 0.3 outside a unit sphere, between nodes: the foot is r/|r|, 0.3 away, and the
+        // mesh's chords lie farther.
+        let dirs = [
+            DVec3::new(0.3, 0.5, 0.2),
+            DVec3::new(-0.7, 0.1, 0.4),
+            DVec3::new(0.1, -0.2, -0.9),
+        ];
+        let pts: Vec<DVec3> = dirs.iter().map(|d| 1.3 * d.normalize()).collect();
+        let mut exact = RangeForces::new(pts.clone(), 1.0, InfluenceMode::Migrating { rate: 1.0 });
+        exact.coverage = 0.0;
+        exact.reassign(&tess, &x);
+        let mut faceted = exact.clone();
+        for _ in 0..50 {
+            exact.migrate(&tess, &x, Some(&state.surface()));
+            faceted.migrate(&tess, &x, None);
+        }
+        assert_eq!(exact.surface_offset.len(), pts.len());
+        assert!(faceted.surface_offset.is_empty());
+        for (i, r) in pts.iter().enumerate() {
+            let on_surface = exact.influence_x(i, &x);
+            assert!((on_surface.length() - 1.0).abs() < 1e-12);
+            let d = on_surface.distance(*r);
+            let chord = faceted.influence_x(i, &x).distance(*r);
+            assert!((d - 0.3).abs() < 1e-6, "foot {d} away, not 0.3");
+            assert!(
+                chord > d + 1e-3,
+                "the chords are no farther: {chord} vs {d}"
+            );
+        }
+        // The springs' energy sees the same points.
+        let e = 0.5 * exact.point_weight(&tess) * 3.0 * 0.09;
+        assert!((exact.energy(&tess, &x) - e).abs() < 1e-6 * e);
     }
 
     #[test]
