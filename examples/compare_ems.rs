@@ -38,7 +38,7 @@ fn describe(q: &SuperquadricParams) -> String {
 }
 
 fn pair(r: &Residuals) -> String {
-    format!("{:.4} / {:.4}", r.mean, r.p95)
+    format!("{:.5} / {:.5}", r.mean, r.p95)
 }
 
 fn main() -> ExitCode {

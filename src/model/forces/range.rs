@@ -165,6 +165,13 @@ pub const SIGMA_FLOOR: f64 = 1e-3;
 /// Default coverage-spring density as a fraction of β.
 pub const DEFAULT_COVERAGE: f64 = 0.1;
 
+/// A reassignment that changes the robust weights' σ² ([`Robust`]) by more than this fraction
+/// counts every spring as changed, so that a fit is not at rest while its weights still sharpen:
+/// stopped earlier, a fit keeps the weight of outliers that a tighter σ would drop (on generated
+/// clouds with 20 % outliers the refining stage stopped after 193 steps with σ still falling,
+/// 0.1 of the RMS radius short of where it settles).
+pub const WEIGHTS_SETTLED: f64 = 0.01;
+
 /// A migration onto the continuous surface ([`RangeForces::migrate`]) leaves a point where it is
 /// when its move along the surface would be shorter than this fraction of its distance to its
 /// datum: the point is at its foot to within a relative 10⁻⁶ of that distance (the neglected move
@@ -267,7 +274,9 @@ impl RangeForces {
 
     /// Refreshes the points of influence from the current node positions `node_x`. Nearest-node
     /// mode moves every point to its nearest node; migrating mode does so only where the nearest
-    /// node is closer than the current point of influence. Returns how many points moved.
+    /// node is closer than the current point of influence. Returns how many springs changed: the
+    /// points that moved, or all of them when the robust weights' σ² moved by more than
+    /// [`WEIGHTS_SETTLED`].
     pub fn reassign(&mut self, tess: &Tessellation, node_x: &[DVec3]) -> usize {
         self.node_targets = if self.coverage > 0.0 {
             nearest_indices(&self.points, node_x)
@@ -311,7 +320,14 @@ impl RangeForces {
                 changed += 1;
             }
         }
+        let sigma2 = self.robust.as_ref().map(|r| r.sigma2);
         self.update_robust(node_x);
+        if let (Some(before), Some(rb)) = (sigma2, &self.robust)
+            && (rb.sigma2 - before).abs() > WEIGHTS_SETTLED * rb.sigma2
+        {
+            // Every robust weight moved with σ: every spring changed.
+            return self.points.len();
+        }
         changed
     }
 
