@@ -9,7 +9,7 @@ use bevy_deformable_sq::model::dynamics::{
     DynamicsParams, ModelState, NodalForces, Workspace, step_prepared,
 };
 use bevy_deformable_sq::model::fem::Tessellation;
-use bevy_deformable_sq::model::fit::{FitOptions, fit};
+use bevy_deformable_sq::model::fit::{FitOptions, fit, fit_residuals, residuals};
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::forces::range::{InfluenceMode, RangeForces, nearest_indices};
 use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment};
@@ -113,6 +113,31 @@ fn reassignment(c: &mut Criterion) {
             BenchmarkId::new("points_vs_nodes", format!("{m}p_{}n", tess.node_count())),
             &(),
             |b, _| b.iter(|| black_box(nearest_indices(&x, &points))),
+        );
+    }
+    g.finish();
+}
+
+/// What measuring a pure superquadric's residuals costs a fit (`fit::fit_residuals`: a k = 151
+/// tessellation built and searched), against its 963-node mesh.
+fn residuals_of_a_fit(c: &mut Criterion) {
+    let mut g = c.benchmark_group("fit_residuals");
+    g.sample_size(10);
+    let tess = Tessellation::new(31);
+    let state = ModelState::new(&tess, DVec3::ZERO, DQuat::IDENTITY, target());
+    for m in [1000, 6000] {
+        let points = superquadric_cloud(&target(), DVec3::ZERO, DQuat::IDENTITY, m, 0.02, 3);
+        g.bench_with_input(
+            BenchmarkId::new("pure_k151", format!("{m}p")),
+            &(),
+            |b, _| b.iter(|| black_box(fit_residuals(&tess, &state, &points))),
+        );
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        g.bench_with_input(
+            BenchmarkId::new("mesh_963n", format!("{m}p")),
+            &(),
+            |b, _| b.iter(|| black_box(residuals(&tess, &x, &points))),
         );
     }
     g.finish();
@@ -323,6 +348,7 @@ criterion_group!(
     app_step,
     app_step_image,
     memory_per_node,
+    residuals_of_a_fit,
     ems_fits
 );
 criterion_main!(benches);

@@ -440,4 +440,13 @@ fn the_refined_superquadric_lies_on_a_clean_clouds_points_between_the_nodes() {
         on_fine.mean < 1e-4 && on_fine.p95 < 2e-4,
         "the refined superquadric lies {on_fine:?} from the points"
     );
+    // A pure superquadric's report measures it so, not on its 963-node mesh.
+    assert_eq!(report.residuals, on_fine);
+    let mut mesh_x = Vec::new();
+    s.node_positions(&report.tess, &mut mesh_x);
+    let on_mesh = residuals(&report.tess, &mesh_x, &points);
+    assert!(
+        on_mesh.mean > 3.0 * on_fine.mean,
+        "{on_mesh:?} vs {on_fine:?}"
+    );
 }

@@ -13,8 +13,8 @@ use super::{
 use crate::model::dynamics::ModelState;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
-    Refinement, Stage, cross_section_dual, global_stages, has_joint_stage, initial_hypotheses,
-    mean_distance, refine_check, residuals, similarity_candidates, validate_options,
+    Refinement, Stage, cross_section_dual, fit_residuals, global_stages, has_joint_stage,
+    initial_hypotheses, mean_distance, refine_check, similarity_candidates, validate_options,
     validate_points, weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
@@ -204,10 +204,8 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     let world = app.world();
     let driver = world.get::<FitDriver>(e).ok_or(FitError::Degenerate)?;
     let state = norm.state_to_data(&state_of(world, e).ok_or(FitError::Degenerate)?);
-    let mut world_x = Vec::new();
-    state.node_positions(&tess, &mut world_x);
     Ok(FitReport {
-        residuals: residuals(&tess, &world_x, points),
+        residuals: fit_residuals(&tess, &state, points),
         steps: (steps_of(&app, e) + other_steps) as u32,
         global_steps: driver.global_steps as u32,
         reassignments: driver.reassignments as u32,

@@ -665,9 +665,12 @@ mod tests {
         }
     }
 
-    #[test]
-    fn migration_reaches_the_foot_of_the_perpendicular() {
-        let tess = Tessellation::new(24);
+    /// A unit sphere on a k-tessellation, its node positions, and three points 0.3 outside it
+    /// between nodes.
+    fn unit_sphere_and_points_outside(
+        k: usize,
+    ) -> (Tessellation, ModelState, Vec<DVec3>, Vec<DVec3>) {
+        let tess = Tessellation::new(k);
         let state = ModelState::new(
             &tess,
             DVec3::ZERO,
@@ -676,13 +679,19 @@ mod tests {
         );
         let mut x = Vec::new();
         state.node_positions(&tess, &mut x);
-        // Points just outside a unit sphere, between nodes: the nearest surface point is r/|r|.
         let dirs = [
             DVec3::new(0.3, 0.5, 0.2),
             DVec3::new(-0.7, 0.1, 0.4),
             DVec3::new(0.1, -0.2, -0.9),
         ];
-        let pts: Vec<DVec3> = dirs.iter().map(|d| 1.3 * d.normalize()).collect();
+        let pts = dirs.iter().map(|d| 1.3 * d.normalize()).collect();
+        (tess, state, x, pts)
+    }
+
+    #[test]
+    fn migration_reaches_the_foot_of_the_perpendicular() {
+        // Points just outside a unit sphere, between nodes: the nearest surface point is r/|r|.
+        let (tess, _, x, pts) = unit_sphere_and_points_outside(24);
         let mut range = RangeForces::new(pts.clone(), 1.0, InfluenceMode::Migrating { rate: 0.5 });
         range.reassign(&tess, &x);
         let before: Vec<f64> = range
@@ -718,23 +727,9 @@ mod tests {
 
     #[test]
     fn migration_onto_the_continuous_surface_reaches_its_foot_past_the_chords() {
-        let tess = Tessellation::new(10);
-        let state = ModelState::new(
-            &tess,
-            DVec3::ZERO,
-            DQuat::IDENTITY,
-            SuperquadricParams::default(),
-        );
-        let mut x = Vec::new();
-        state.node_positions(&tess, &mut x);
         // Points 0.3 outside a unit sphere, between nodes: the foot is r/|r|, 0.3 away, and the
         // mesh's chords lie farther.
-        let dirs = [
-            DVec3::new(0.3, 0.5, 0.2),
-            DVec3::new(-0.7, 0.1, 0.4),
-            DVec3::new(0.1, -0.2, -0.9),
-        ];
-        let pts: Vec<DVec3> = dirs.iter().map(|d| 1.3 * d.normalize()).collect();
+        let (tess, state, x, pts) = unit_sphere_and_points_outside(10);
         let mut exact = RangeForces::new(pts.clone(), 1.0, InfluenceMode::Migrating { rate: 1.0 });
         exact.coverage = 0.0;
         exact.reassign(&tess, &x);
