@@ -374,8 +374,8 @@ fn the_noisy_cylinders_refinement_comes_to_rest_on_the_continuous_surface() {
     use bevy_deformable_sq::io::load_points;
     // EMS's noisy cylinder with outliers. Projected onto the mesh's chords, its refinement first
     // came closer to the points, then its length ran away, and was given up after 2003 steps; on
-    // the continuous superquadric it comes to rest closer (measured: 95 steps, 0.1254 → 0.1156 of
-    // the RMS radius), and the fit is within 1 % of EMS's (README "Side by side with EMS").
+    // the continuous superquadric it comes to rest closer (measured: in 140 steps), and the fit is
+    // within 1 % of EMS's (README "Side by side with EMS").
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("assets/data/ems/noisy_pointCloud_example_2.ply");
     let points = load_points(&path).expect("the shipped EMS cloud");
