@@ -47,7 +47,7 @@ use super::fem::{ElementPoint, GridPowers, Tessellation};
 use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
 use super::linalg::cholesky_solve;
 use super::superquadric::{
-    NUM_SHAPE, SignedPowers, SuperquadricParams, shape_at, shape_from_powers,
+    NUM_SHAPE, SignedPowers, SuperquadricParams, shape_at, shape_from_powers, snapped_trig,
 };
 use bevy::math::{DMat3, DQuat, DVec3};
 
@@ -164,8 +164,17 @@ impl<'a> ModelSurface<'a> {
         if !self.deformation.is_identity() {
             s = self.deformation.apply(s, self.shape.semi_axes().z);
         }
-        let d = at.interpolate(|k| self.displacement.get(k).copied().unwrap_or_default());
-        self.translation + self.rotation * (s + d)
+        self.placed(s, at)
+    }
+
+    /// The local displacement d_k of node k (zero past the end of the displacements).
+    fn displacement(&self, k: usize) -> DVec3 {
+        self.displacement.get(k).copied().unwrap_or_default()
+    }
+
+    /// c + R (t + d(u)) for the deformed superquadric point t at `at`.
+    fn placed(&self, t: DVec3, at: &ElementPoint) -> DVec3 {
+        self.translation + self.rotation * (t + at.interpolate(|k| self.displacement(k)))
     }
 
     /// x(u, v) and its tangents ∂x/∂u, ∂x/∂v, or the tangents `None` on the coordinate lines
@@ -180,10 +189,11 @@ impl<'a> ModelSurface<'a> {
         at: &ElementPoint,
     ) -> (DVec3, Option<(DVec3, DVec3)>) {
         let q = &self.shape;
-        let p = SignedPowers::at(q, u, v);
+        let trig = snapped_trig(u, v);
+        let p = SignedPowers::of_trig(q, trig);
         let s = shape_from_powers(q, &p);
-        let ((su, cu), (sv, cv)) = (u.sin_cos(), v.sin_cos());
-        let regular = [su, cu, sv, cv].iter().all(|t| t.abs() >= 1e-9);
+        let [cu, su, cv, sv] = trig;
+        let regular = trig.iter().all(|t| t.abs() >= 1e-9);
         let scaled = q.a * DVec3::new(q.a1, q.a2, q.a3);
         let ds = regular.then(|| {
             let dcu = -q.e1 * su / cu * p.cu;
@@ -204,15 +214,18 @@ impl<'a> ModelSurface<'a> {
                 ds.map(|(a, b)| (jac.d_point * a, jac.d_point * b)),
             )
         };
-        let disp = |k: usize| self.displacement.get(k).copied().unwrap_or_default();
-        let d = at.interpolate(disp);
-        let x = self.translation + self.rotation * (t + d);
         let tangents = ds.map(|(a, b)| {
-            let du: DVec3 = (0..4).map(|k| at.du[k] * disp(at.nodes[k] as usize)).sum();
-            let dv: DVec3 = (0..4).map(|k| at.dv[k] * disp(at.nodes[k] as usize)).sum();
-            (self.rotation * (a + du), self.rotation * (b + dv))
+            let derivative = |dn: &[f64; 4]| -> DVec3 {
+                (0..4)
+                    .map(|k| dn[k] * self.displacement(at.nodes[k] as usize))
+                    .sum()
+            };
+            (
+                self.rotation * (a + derivative(&at.du)),
+                self.rotation * (b + derivative(&at.dv)),
+            )
         });
-        (x, tangents)
+        (self.placed(t, at), tangents)
     }
 }
 

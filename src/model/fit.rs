@@ -23,7 +23,7 @@
 //! the start; set `global_first = false` for that.
 
 use super::dynamics::{
-    DynamicsParams, ModelState, NodalForces, StepError, Workspace, step_prepared,
+    DynamicsParams, ModelState, NodalForces, StepError, Workspace, node_positions, step_prepared,
 };
 use super::fem::Tessellation;
 use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces, Robust};
@@ -1166,18 +1166,28 @@ pub const SURFACE_RESIDUAL_K: usize = 151;
 pub fn fit_residuals(tess: &Tessellation, state: &ModelState, points: &[DVec3]) -> Residuals {
     let pure = state.displacement.iter().all(|d| *d == DVec3::ZERO);
     let fine;
-    let (tess, state) = if pure && tess.k < SURFACE_RESIDUAL_K {
+    let tess = if pure && tess.k < SURFACE_RESIDUAL_K {
         fine = Tessellation::new(SURFACE_RESIDUAL_K);
-        let state = ModelState {
-            displacement: Vec::new(),
-            ..state.clone()
-        };
-        (&fine, state)
+        &fine
     } else {
-        (tess, state.clone())
+        tess
+    };
+    // Displacements missing at the end count as zero: the pure superquadric on the fine mesh.
+    let displacement = if pure {
+        &[][..]
+    } else {
+        &state.displacement[..]
     };
     let mut x = Vec::new();
-    state.node_positions(tess, &mut x);
+    node_positions(
+        tess,
+        state.translation,
+        state.rotation,
+        &state.shape,
+        &state.deformation,
+        displacement,
+        &mut x,
+    );
     residuals(tess, &x, points)
 }
 

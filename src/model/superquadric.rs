@@ -145,8 +145,7 @@ impl Trig {
     /// The terms at material coordinates (u, v), snapping the cosines and sines that are zero in
     /// exact arithmetic (u = ±π/2, v = ±π/2, 0, ±π) to exactly 0 so that poles and axes are exact.
     pub fn new(u: f64, v: f64) -> Self {
-        let snap = |x: f64| if x.abs() < 1e-12 { 0.0 } else { x };
-        let (cu, su, cv, sv) = (snap(u.cos()), snap(u.sin()), snap(v.cos()), snap(v.sin()));
+        let [cu, su, cv, sv] = snapped_trig(u, v);
         Self {
             cu,
             su,
@@ -191,18 +190,29 @@ impl SignedPowers {
         }
     }
 
-    /// The signed powers at material coordinates (u, v), with the cosines and sines snapped as
-    /// [`Trig::new`] snaps them but without its logarithms: what evaluating s at one point needs.
+    /// The signed powers at material coordinates (u, v), with the cosines and sines of
+    /// [`snapped_trig`] but without [`Trig`]'s logarithms: what evaluating s at one point needs.
     pub fn at(q: &SuperquadricParams, u: f64, v: f64) -> Self {
-        let snap = |x: f64| if x.abs() < 1e-12 { 0.0 } else { x };
-        let ((su, cu), (sv, cv)) = (u.sin_cos(), v.sin_cos());
+        Self::of_trig(q, snapped_trig(u, v))
+    }
+
+    /// The signed powers from [cos u, sin u, cos v, sin v] ([`snapped_trig`]).
+    pub fn of_trig(q: &SuperquadricParams, [cu, su, cv, sv]: [f64; 4]) -> Self {
         Self {
-            cu: spow(snap(cu), q.e1),
-            su: spow(snap(su), q.e1),
-            cv: spow(snap(cv), q.e2),
-            sv: spow(snap(sv), q.e2),
+            cu: spow(cu, q.e1),
+            su: spow(su, q.e1),
+            cv: spow(cv, q.e2),
+            sv: spow(sv, q.e2),
         }
     }
+}
+
+/// [cos u, sin u, cos v, sin v], each snapped to exactly 0 where it is zero in exact arithmetic
+/// (below 1e-12: u = ±π/2, v = ±π/2, 0, ±π), so that poles and axes are exact.
+pub fn snapped_trig(u: f64, v: f64) -> [f64; 4] {
+    let snap = |x: f64| if x.abs() < 1e-12 { 0.0 } else { x };
+    let ((su, cu), (sv, cv)) = (u.sin_cos(), v.sin_cos());
+    [snap(cu), snap(su), snap(cv), snap(sv)]
 }
 
 /// s (eq. 4) from precomputed signed powers.
