@@ -563,6 +563,13 @@ impl StageClock {
     }
 }
 
+/// The step budget of each similarity candidate ([`FitOptions::similarity_switch`]) when `spent`
+/// of the fit's `max_steps` are used: an equal share of the rest, as the hypotheses share the
+/// whole, so that the candidates can run side by side and the fit stays within its cap.
+pub fn similarity_share(max_steps: u32, spent: u32, candidates: usize) -> u32 {
+    max_steps.saturating_sub(spent) / candidates.max(1) as u32
+}
+
 /// The mean distance of `points` to the surface through `node_x`, point i weighted by
 /// `weights[i]` (the similarity switch's score, [`FitOptions::similarity_switch`]).
 pub fn weighted_mean_distance(
@@ -1010,29 +1017,29 @@ pub fn fit(
             .map(|i| relax.range.relative_weight(i))
             .collect();
         let weighted = |x: &[DVec3]| weighted_mean_distance(&tess, x, &unit, &weights);
-        let mut best_score = weighted(&relax.x);
-        let mut best = None;
-        for candidate in similarity_candidates(&InitialPose::of(&relax.state)) {
-            // The steps of every run so far, the best candidate's included.
-            let spent = other_steps
-                + relax.steps
-                + best
-                    .as_ref()
-                    .map_or(0, |b: &(Relaxation, bool, InitialPose)| b.0.steps);
-            let mut other = Relaxation::new(&tess, opts, &unit, &candidate);
-            let other_converged = other.run(
-                Stage::Global,
-                opts.max_steps.saturating_sub(spent),
-                &mut progress,
-            )?;
+        let candidates = similarity_candidates(&InitialPose::of(&relax.state));
+        let share = similarity_share(opts.max_steps, other_steps + relax.steps, candidates.len());
+        // The candidates are independent runs: they go over the cores like the hypotheses.
+        let run = |candidate: &InitialPose, progress: &mut dyn FnMut(&FitProgress)| {
+            let mut other = Relaxation::new(&tess, opts, &unit, candidate);
+            let converged = other.run(Stage::Global, share, &mut |p: &FitProgress| progress(p))?;
+            let mut undone = 0;
             if opts.refine {
                 let score = mean_distance(&tess, &other.x, &other.range.points);
-                let cap = opts.max_steps.saturating_sub(spent);
-                let stage = other.refine(score, cap, &mut progress)?;
+                let stage = other.refine(score, share, &mut |p: &FitProgress| progress(p))?;
                 if !stage.kept {
-                    other_steps += stage.steps;
+                    undone = stage.steps;
                 }
             }
+            Ok::<_, FitError>((other, converged, undone))
+        };
+        let runs = run_parallel(&candidates, run, &mut progress);
+        let mut best_score = weighted(&relax.x);
+        let mut best: Option<(Relaxation, bool, InitialPose)> = None;
+        // In the candidates' order, so that ties and the outcome do not depend on scheduling.
+        for (result, candidate) in runs.into_iter().zip(candidates) {
+            let (other, other_converged, undone) = result?;
+            other_steps += undone;
             let other_score = weighted(&other.x);
             if other_score < best_score {
                 best_score = other_score;

@@ -14,8 +14,8 @@ use crate::model::dynamics::ModelState;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
     Refinement, Stage, cross_section_dual, fit_residuals, global_stages, has_joint_stage,
-    initial_hypotheses, mean_distance, refine_check, similarity_candidates, validate_options,
-    validate_points, weighted_mean_distance,
+    initial_hypotheses, mean_distance, refine_check, similarity_candidates, similarity_share,
+    validate_options, validate_points, weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
 use crate::model::init::InitialPose;
@@ -157,12 +157,15 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         let mut best_score = weighted(&app, e)?;
         let mut best: Option<(Entity, InitialPose)> = None;
         let current = InitialPose::of(&state_of(app.world(), e).ok_or(FitError::Degenerate)?);
-        for candidate in similarity_candidates(&current) {
-            // The steps of every run so far, the best candidate's included.
-            let spent = other_steps
-                + steps_of(&app, e)
-                + best.as_ref().map_or(0, |(old, _)| steps_of(&app, *old));
-            let cap = (opts.max_steps as u64).saturating_sub(spent);
+        let candidates = similarity_candidates(&current);
+        // Each candidate's budget is `fit`'s: an equal share of the steps left.
+        let spent = other_steps + steps_of(&app, e);
+        let cap = similarity_share(
+            opts.max_steps,
+            u32::try_from(spent).unwrap_or(u32::MAX),
+            candidates.len(),
+        ) as u64;
+        for candidate in candidates {
             let driver = FitDriver::new(*opts, [Stage::Global], cap);
             let other = spawn_model(&mut app, opts, &unit, &candidate, driver);
             run_until_done(&mut app, max_updates)?;
