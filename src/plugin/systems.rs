@@ -399,7 +399,8 @@ pub fn drive_fits(
             let points = range.forces.points.len();
             let ended = clock.after_step(motion, &driver.options, points, || {
                 reassigned = true;
-                range.forces.reassign(tess, &scratch.node_x)
+                let changed = range.forces.reassign(tess, &scratch.node_x);
+                (changed, range.forces.signature())
             });
             driver.reassignments += reassigned as u64;
             range.reassignments += reassigned as u64;
