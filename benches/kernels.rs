@@ -69,7 +69,7 @@ fn step_once(
     params: &DynamicsParams,
 ) {
     forces.clear(tess.node_count());
-    range.accumulate(tess, ws.prepare(tess, state), None, forces);
+    range.accumulate(tess, ws.prepare(tess, state), forces);
     step_prepared(tess, state, forces, params, ws).expect("finite");
 }
 
@@ -327,7 +327,7 @@ fn beyond_the_paper_step(c: &mut Criterion) {
         g.bench_with_input(BenchmarkId::new("second_order", &label), &(), |b, _| {
             b.iter(|| {
                 forces.clear(tess.node_count());
-                range.accumulate(&tess, ws.prepare(&tess, &s), None, &mut forces);
+                range.accumulate(&tess, ws.prepare(&tess, &s), &mut forces);
                 inertia_step(&tess, &mut s, &mut v, &forces, &params, &inertia, &mut iws)
                     .expect("finite");
                 if s.displacement[0].length() > 1.0 {

@@ -144,7 +144,7 @@ fn plugin_fit_equals_the_pure_core_step_for_step() {
         }
         range.migrate(&tess, &x, Some(&state.surface()));
         forces.clear(tess.node_count());
-        range.accumulate(&tess, &x, None, &mut forces);
+        range.accumulate(&tess, &x, &mut forces);
         step(&tess, &mut state, &forces, &settings.dynamics(), &mut ws).unwrap();
     }
     assert_eq!(state.translation, rigid.translation);

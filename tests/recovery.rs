@@ -200,7 +200,7 @@ fn spring_and_strain_energy_fall_under_fitting_steps() {
         );
         e = e_new;
         forces.clear(tess.node_count());
-        range.accumulate(&tess, &x, None, &mut forces);
+        range.accumulate(&tess, &x, &mut forces);
         step(&tess, &mut state, &forces, &params, &mut ws).expect("finite");
         state.node_positions(&tess, &mut x);
         let e_new = energy(&range, &state, &x);

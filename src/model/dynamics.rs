@@ -47,7 +47,7 @@ use super::fem::{ElementPoint, GridPowers, Tessellation};
 use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
 use super::linalg::cholesky_solve;
 use super::superquadric::{
-    NUM_SHAPE, SignedPowers, SuperquadricParams, Trig, shape_at, shape_from_powers, snapped_trig,
+    NUM_SHAPE, SignedPowers, SuperquadricParams, shape_at, shape_from_powers, snapped_trig,
 };
 use bevy::math::{DMat3, DQuat, DVec3};
 
@@ -170,11 +170,6 @@ impl<'a> ModelSurface<'a> {
     /// The local displacement d_k of node k (zero past the end of the displacements).
     fn displacement(&self, k: usize) -> DVec3 {
         self.displacement.get(k).copied().unwrap_or_default()
-    }
-
-    /// The model-frame point p = Rᵀ (x − c) of a world point x (eq. 2 inverted).
-    pub fn to_model(&self, x: DVec3) -> DVec3 {
-        self.rotation.transpose() * (x - self.translation)
     }
 
     /// c + R (t + d(u)) for the deformed superquadric point t at `at`.
@@ -327,39 +322,6 @@ pub struct NodalForces {
     pub plane_stiffness: Vec<f64>,
     /// Unit world-space surface normal n_i where `plane_stiffness` is non-zero.
     pub plane_normal: Vec<DVec3>,
-    /// Springs at points of the continuous surface between the nodes that act on the global DOFs
-    /// only, each through L(u) at its own material point instead of spread to the nodes (see
-    /// [`PointForce`]).
-    pub points: Vec<PointForce>,
-}
-
-/// A force on the global DOFs at a material point u = (u, v) of the continuous surface (beyond the
-/// paper, whose forces are spread to the nodes by N_i, eq. 22): its generalized force is L(u)ᵀ f
-/// with the Jacobian of eq. (9) evaluated at u itself, and its spring adds κ L(u)ᵀ L(u) (plus
-/// the point-to-plane term ρ (L(u)ᵀ n)(L(u)ᵀ n)ᵀ) to the global damping block. Spread to the
-/// nodes, a force at u acts through Σ N_i(u) L_i, the Jacobian interpolated between the nodes,
-/// and the fit's equilibrium moves with the interpolation error: on EMS's near-box
-/// `partial_pointCloud_example_3` the refined superquadric's middle semi-axis depended on the
-/// tessellation (1.07 at k = 31).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PointForce {
-    /// Material latitude u.
-    pub u: f64,
-    /// Material longitude v.
-    pub v: f64,
-    /// The element and shape functions at (u, v), for consumers that spread the force to the
-    /// nodes ([`NodalForces::spread_points`]).
-    pub at: ElementPoint,
-    /// The model-frame point p(u) = T(s(u)) + d(u) where the force acts.
-    pub p: DVec3,
-    /// World-space force.
-    pub force: DVec3,
-    /// Isotropic stiffness weight κ of its spring.
-    pub stiffness: f64,
-    /// Point-to-plane stiffness ρ of its spring, along `normal`.
-    pub plane_stiffness: f64,
-    /// Unit world-space surface normal n where `plane_stiffness` is non-zero.
-    pub normal: DVec3,
 }
 
 impl NodalForces {
@@ -372,7 +334,6 @@ impl NodalForces {
 
     /// Resets to zero forces on `n` nodes, keeping the allocation.
     pub fn clear(&mut self, n: usize) {
-        self.points.clear();
         for v in [
             &mut self.force,
             &mut self.shape_force,
@@ -388,25 +349,6 @@ impl NodalForces {
         ] {
             v.clear();
             v.resize(n, 0.0);
-        }
-    }
-
-    /// Spreads the [`Self::points`] forces to the nodes by N_i (eq. 22), as global-only forces
-    /// with their stiffnesses (the plane normal of a node keeps its own), and empties the list:
-    /// for integrators that take nodal forces only (the second-order dynamics of `inertia`).
-    pub fn spread_points(&mut self) {
-        for pf in std::mem::take(&mut self.points) {
-            for k in 0..4 {
-                let nk = pf.at.weights[k];
-                if nk != 0.0 {
-                    let node = pf.at.nodes[k] as usize;
-                    self.shape_force[node] += nk * pf.force;
-                    self.shape_stiffness[node] += nk * pf.stiffness;
-                    if let Some(rho) = self.plane_stiffness.get_mut(node) {
-                        *rho += nk * pf.plane_stiffness;
-                    }
-                }
-            }
         }
     }
 
@@ -694,8 +636,8 @@ fn dot3(a: &[f64; 3], b: &[f64; 3]) -> f64 {
 /// What the global system reads at a node where a force acts.
 #[derive(Clone, Copy)]
 struct ForcedNode {
-    /// Unit world normal of its point-to-plane spring (zero without).
-    normal: DVec3,
+    /// Node index.
+    i: usize,
     /// Force on every DOF plus force on the global DOFs only (world).
     f: DVec3,
     /// Stiffness weight of both.
@@ -711,14 +653,12 @@ struct ForcedNode {
 }
 
 /// Calls `visit` for every node with a force, spring or plane spring on it, with the terms of
-/// the node's row of J (signed powers from the workspace's grid, logs from the tessellation), then
-/// for every [`PointForce`] with the terms at its own material point (shape `q`).
+/// the node's row of J (signed powers from the workspace's grid, logs from the tessellation).
 #[inline(always)]
 fn for_each_forced_node(
     tess: &Tessellation,
     ws: &Workspace,
     forces: &NodalForces,
-    q: &SuperquadricParams,
     mut visit: impl FnMut(&ForcedNode),
 ) {
     let (points, grid) = (&ws.points, &ws.grid);
@@ -738,11 +678,7 @@ fn for_each_forced_node(
         let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
         let ([ln_cu, ln_su], [ln_cv, ln_sv]) = tess.grid_logs(ring, lon);
         visit(&ForcedNode {
-            normal: if rho != 0.0 {
-                forces.plane_normal[i]
-            } else {
-                DVec3::ZERO
-            },
+            i,
             f,
             kappa,
             rho,
@@ -751,23 +687,6 @@ fn for_each_forced_node(
             phi: [[1.0, ln_cu, ln_cv], [1.0, ln_cu, ln_sv], [1.0, ln_su, 0.0]],
         });
     });
-    for pf in &forces.points {
-        let t = Trig::new(pf.u, pf.v);
-        let sp = SignedPowers::new(q, &t);
-        visit(&ForcedNode {
-            normal: pf.normal,
-            f: pf.force,
-            kappa: pf.stiffness,
-            rho: pf.plane_stiffness,
-            p: pf.p,
-            base: [sp.cu * sp.cv, sp.cu * sp.sv, sp.su],
-            phi: [
-                [1.0, t.ln_cu, t.ln_cv],
-                [1.0, t.ln_cu, t.ln_sv],
-                [1.0, t.ln_su, 0.0],
-            ],
-        });
-    }
 }
 
 /// The stiffness-weighted Gram matrix Σ κ_i L_iᵀ L_i (plus the point-to-plane terms), the
@@ -817,7 +736,7 @@ fn global_system_general(
     let mut f_model = [0.0; M];
     let mut f_c = DVec3::ZERO;
     let (mut kappa_sum, mut plane_sum) = (0.0, 0.0);
-    for_each_forced_node(tess, ws, forces, q, |node| {
+    for_each_forced_node(tess, ws, forces, |node| {
         let s = axes * DVec3::from_array(node.base);
         let t = state.deformation.jacobian(s, axes.z);
         let mut cols = [DVec3::ZERO; M];
@@ -838,7 +757,11 @@ fn global_system_general(
         for (fa, col) in f_model.iter_mut().zip(&cols) {
             *fa += col.dot(fm);
         }
-        let n = node.normal;
+        let n = if node.rho != 0.0 {
+            forces.plane_normal[node.i]
+        } else {
+            DVec3::ZERO
+        };
         let m = rt * n;
         let along: [f64; M] = std::array::from_fn(|a| cols[a].dot(m));
         for a in 0..M {
@@ -906,9 +829,9 @@ fn global_system_superquadric(
     let alpha = jacobian_coefficients(&state.shape);
     let mut plane_gram = [[0.0; NUM_GLOBAL]; NUM_GLOBAL]; // Σ ρ g gᵀ, upper triangle
     let mut plane_sum = 0.0;
-    for_each_forced_node(tess, ws, forces, &state.shape, |node| {
+    for_each_forced_node(tess, ws, forces, |node| {
         let ForcedNode {
-            normal,
+            i,
             f,
             kappa,
             rho,
@@ -921,7 +844,7 @@ fn global_system_superquadric(
         torque += p.cross(fm);
         if rho != 0.0 {
             // g = L_iᵀ n = (n, Gᵀ (p × Rᵀn), Jᵀ Rᵀn), added as ρ g gᵀ.
-            let n = normal;
+            let n = forces.plane_normal[i];
             let m = rt * n;
             let pm = p.cross(m);
             let ma = m.to_array();
@@ -1484,8 +1407,28 @@ pub(crate) mod tests {
             let fq = generalized_global_forces(&tess, &state, &forces);
             let h = 1e-6;
             for j in 0..NUM_GLOBAL {
-                let perturbed =
-                    |sign: f64| potential(&tess, &moved_dof(&state, j, sign * h), &forces);
+                let perturbed = |sign: f64| {
+                    let mut s = state.clone();
+                    match j {
+                        0..=2 => s.translation[j] += sign * h,
+                        3..=6 => {
+                            let mut q = quat_to_paper(s.rotation);
+                            q[j - 3] += sign * h;
+                            s.rotation = quat_from_paper(q).normalize();
+                        }
+                        7..DEFORM_START => {
+                            let mut a = s.shape.to_array();
+                            a[j - 7] += sign * h;
+                            s.shape = SuperquadricParams::from_array(a);
+                        }
+                        _ => {
+                            let mut t = s.deformation.to_array();
+                            t[j - DEFORM_START] += sign * h;
+                            s.deformation = GlobalDeformation::from_array(t);
+                        }
+                    }
+                    potential(&tess, &s, &forces)
+                };
                 let fd = -(perturbed(1.0) - perturbed(-1.0)) / (2.0 * h);
                 assert!(
                     (fd - fq[j]).abs() < 1e-6 * (1.0 + fd.abs()),
@@ -1494,137 +1437,6 @@ pub(crate) mod tests {
                     fq[j]
                 );
             }
-        }
-    }
-
-    /// The state with global DOF `j` moved by `delta` (as the central-difference tests move it).
-    fn moved_dof(state: &ModelState, j: usize, delta: f64) -> ModelState {
-        let mut s = state.clone();
-        match j {
-            0..=2 => s.translation[j] += delta,
-            3..=6 => {
-                let mut q = quat_to_paper(s.rotation);
-                q[j - 3] += delta;
-                s.rotation = quat_from_paper(q).normalize();
-            }
-            7..DEFORM_START => {
-                let mut a = s.shape.to_array();
-                a[j - 7] += delta;
-                s.shape = SuperquadricParams::from_array(a);
-            }
-            _ => {
-                let mut t = s.deformation.to_array();
-                t[j - DEFORM_START] += delta;
-                s.deformation = GlobalDeformation::from_array(t);
-            }
-        }
-        s
-    }
-
-    #[test]
-    fn forces_at_points_between_the_nodes_act_through_the_jacobian_at_the_point() {
-        // Springs at five material points inside elements (off the axes), as `PointForce`s: the
-        // generalized forces are −∂V/∂q of V = −Σ f_p · x(u_p; q) on the continuous surface, and
-        // the Gram matrix is Σ κ L(u)ᵀL(u) + ρ (L(u)ᵀn)(L(u)ᵀn)ᵀ with L(u)'s columns ∂x(u)/∂q by
-        // central differences, for the plain superquadric (moments path) and a tapered, bent one
-        // with q_T free (column path).
-        let tess = Tessellation::new(6);
-        let uv = [
-            (0.31, 0.42),
-            (-0.87, 2.5),
-            (1.17, -2.03),
-            (1.43, 0.13),
-            (-1.46, 1.07),
-        ];
-        let x_at =
-            |state: &ModelState, (u, v): (f64, f64)| state.surface().at(u, v, &tess.locate(u, v));
-        let held = FreeDofs::default();
-        let free = FreeDofs {
-            taper: true,
-            bend: true,
-            ..held
-        };
-        for (state, dofs) in [(test_state(&tess), held), (deformed_state(&tess), free)] {
-            let surface = state.surface();
-            let mut forces = NodalForces::new(tess.node_count());
-            for (i, &(u, v)) in uv.iter().enumerate() {
-                let k = i as f64;
-                let at = tess.locate(u, v);
-                assert!(at.weights[0] < 1.0, "inside an element");
-                forces.points.push(PointForce {
-                    u,
-                    v,
-                    at,
-                    p: surface.to_model(x_at(&state, (u, v))),
-                    force: DVec3::new(1.0 - k, 0.5 * k, 0.3),
-                    stiffness: 0.5 + k,
-                    plane_stiffness: 1.0 + 0.5 * k,
-                    normal: DVec3::new(0.3, -0.4, 0.5 + 0.1 * k).normalize(),
-                });
-            }
-            let mut ws = Workspace::default();
-            ws.prepare(&tess, &state);
-            let (m, f, _) = global_system(&tess, &state, &ws, &forces, &dofs);
-            let rows = if state.deformation.is_identity() && !dofs.taper {
-                DEFORM_START
-            } else {
-                NUM_GLOBAL
-            };
-            let h = 1e-6;
-            // cols[p][j] = ∂x(u_p)/∂q_j.
-            let cols: Vec<Vec<DVec3>> = uv
-                .iter()
-                .map(|&point| {
-                    (0..rows)
-                        .map(|j| {
-                            (x_at(&moved_dof(&state, j, h), point)
-                                - x_at(&moved_dof(&state, j, -h), point))
-                                / (2.0 * h)
-                        })
-                        .collect()
-                })
-                .collect();
-            for a in 0..rows {
-                let fd: f64 = forces
-                    .points
-                    .iter()
-                    .zip(&cols)
-                    .map(|(pf, c)| pf.force.dot(c[a]))
-                    .sum();
-                assert!(
-                    (fd - f[a]).abs() < 1e-6 * (1.0 + fd.abs()),
-                    "dof {a} at {:?}: f_q {} vs fd {fd}",
-                    state.deformation,
-                    f[a]
-                );
-                for b in 0..rows {
-                    let gram: f64 = forces
-                        .points
-                        .iter()
-                        .zip(&cols)
-                        .map(|(pf, c)| {
-                            pf.stiffness * c[a].dot(c[b])
-                                + pf.plane_stiffness * c[a].dot(pf.normal) * c[b].dot(pf.normal)
-                        })
-                        .sum();
-                    assert!(
-                        (gram - m[a][b]).abs() < 1e-5 * (1.0 + gram.abs()),
-                        "({a},{b}) at {:?}: {} vs fd {gram}",
-                        state.deformation,
-                        m[a][b]
-                    );
-                }
-            }
-            // Spread to the nodes instead, the same springs act through the interpolated
-            // Jacobian: another, inexact generalized force.
-            let mut spread = forces.clone();
-            spread.spread_points();
-            assert!(spread.points.is_empty());
-            let (_, f_spread, _) = global_system(&tess, &state, &ws, &spread, &dofs);
-            let gap = (7..DEFORM_START)
-                .map(|a| (f_spread[a] - f[a]).abs())
-                .fold(0.0, f64::max);
-            assert!(gap > 1e-4, "spreading changed nothing: {gap}");
         }
     }
 

@@ -836,11 +836,10 @@ impl<'a> Relaxation<'a> {
         self.reassignments += 1;
         self.ws.prepare(tess, &self.state);
         while self.steps < budget {
-            let surface = self.state.surface();
-            self.range.migrate(tess, &self.x, Some(&surface));
-            self.forces.clear(tess.node_count());
             self.range
-                .accumulate(tess, &self.x, Some(&surface), &mut self.forces);
+                .migrate(tess, &self.x, Some(&self.state.surface()));
+            self.forces.clear(tess.node_count());
+            self.range.accumulate(tess, &self.x, &mut self.forces);
             let report = step_prepared(
                 tess,
                 &mut self.state,

@@ -538,16 +538,6 @@ pub fn step(
         forces.force.len() == n && forces.shape_force.len() == n,
         "NodalForces sized for another tessellation"
     );
-    // This integrator takes nodal forces: forces at points between the nodes are spread to them.
-    let spread;
-    let forces = if forces.points.is_empty() {
-        forces
-    } else {
-        let mut f = forces.clone();
-        f.spread_points();
-        spread = f;
-        &spread
-    };
     if !(inertia.mass_density > 0.0 && inertia.local_inertia > 0.0 && inertia.damping >= 0.0) {
         return Err(StepError::Invalid(
             "inertia parameters: μ and λ must be > 0 and β ≥ 0",

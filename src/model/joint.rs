@@ -248,7 +248,7 @@ mod tests {
                     if k % 50 == 0 {
                         ranges[p].reassign(&tess, &x[p]);
                     }
-                    ranges[p].accumulate(&tess, &x[p], None, &mut forces[p]);
+                    ranges[p].accumulate(&tess, &x[p], &mut forces[p]);
                 }
                 if jointed {
                     let [fa, fb] = &mut forces;

@@ -213,7 +213,7 @@ pub fn gather_forces(
                 range.forces.migrate(tess, &scratch.node_x, Some(&surface));
                 range
                     .forces
-                    .accumulate(tess, &scratch.node_x, Some(&surface), &mut scratch.forces);
+                    .accumulate(tess, &scratch.node_x, &mut scratch.forces);
             }
             if let Some(image) = image {
                 image

@@ -57,7 +57,7 @@
 //! μ = [`SURFACE_TANGENT_FRACTION`] (0.03), for which the global step is nearly Gauss–Newton on the
 //! point-to-surface distance.
 
-use crate::model::dynamics::{ModelSurface, NodalForces, PointForce};
+use crate::model::dynamics::{ModelSurface, NodalForces};
 use crate::model::fem::{ElementPoint, Tessellation};
 use bevy::math::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -430,17 +430,9 @@ impl RangeForces {
     /// with stiffness w, and the coverage springs to `out.shape_force`. With `plane`, every spring
     /// keeps only its component along the surface normal n (from [`Tessellation::vertex_normals`],
     /// written to `out.plane_normal`) and goes to `out.shape_force` with stiffness
-    /// `out.plane_stiffness`: the global DOFs only. With `plane` and the model's `surface`, after a
-    /// [`Self::migrate`] onto it, the springs of points between the nodes go to `out.points`
-    /// instead ([`PointForce`]: through the Jacobian at the point itself, not interpolated between
-    /// the nodes). Does nothing before the first [`Self::reassign`].
-    pub fn accumulate(
-        &self,
-        tess: &Tessellation,
-        node_x: &[DVec3],
-        surface: Option<&ModelSurface>,
-        out: &mut NodalForces,
-    ) {
+    /// `out.plane_stiffness`: the global DOFs only. Does nothing before the first
+    /// [`Self::reassign`].
+    pub fn accumulate(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut NodalForces) {
         let w = self.point_weight(tess);
         // Each spring's constant: w, or w m p_i / Σ p with robust weights (looked up once here).
         let robust = self.inlier_scale();
@@ -448,29 +440,12 @@ impl RangeForces {
         if self.plane {
             tess.vertex_normals(node_x, &mut out.plane_normal);
             let mu = self.tangent_fraction();
-            // Points on the continuous surface act through L at their own material point.
-            let on_surface = surface.filter(|_| !self.surface_offset.is_empty());
             for (i, (r, inf)) in self.points.iter().zip(&self.influence).enumerate() {
                 let w = w_of(i);
                 let at = &inf.at;
                 let x = self.influence_x(i, node_x);
                 let n = at.interpolate(|k| out.plane_normal[k]).normalize_or_zero();
                 let f = w * plane_spring(*r - x, n, mu);
-                if let Some(s) = on_surface
-                    && at.weights[0] != 1.0
-                {
-                    out.points.push(PointForce {
-                        u: inf.u,
-                        v: inf.v,
-                        at: *at,
-                        p: s.to_model(x),
-                        force: f,
-                        stiffness: mu * w,
-                        plane_stiffness: (1.0 - mu) * w,
-                        normal: n,
-                    });
-                    continue;
-                }
                 for k in 0..4 {
                     let nk = at.weights[k];
                     if nk != 0.0 {
