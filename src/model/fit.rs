@@ -1291,6 +1291,21 @@ mod tests {
     }
 
     #[test]
+    fn similarity_candidates_share_the_steps_left_within_the_cap() {
+        assert_eq!(similarity_share(20_000, 2_000, 4), 4_500);
+        assert_eq!(similarity_share(20_000, 2_001, 4), 4_499);
+        // All of them together stay within the cap; none is left when it is spent.
+        for (max, spent, n) in [(20_000, 1_977, 3), (900, 899, 5), (300, 400, 2), (10, 0, 0)] {
+            let share = similarity_share(max, spent, n);
+            assert!(
+                spent.min(max) + share * n.max(1) as u32 <= max,
+                "{max} {spent} {n}"
+            );
+        }
+        assert_eq!(similarity_share(300, 400, 2), 0);
+    }
+
+    #[test]
     fn a_stage_ends_when_its_rests_go_round_a_cycle_of_springs() {
         let opts = FitOptions {
             reassign_every: 200,
