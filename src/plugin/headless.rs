@@ -14,8 +14,9 @@ use crate::model::dynamics::ModelState;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
     Refinement, Stage, cross_section_dual, fit_residuals, global_stages, has_joint_stage,
-    initial_hypotheses, mean_distance, refine_check, similarity_candidates, similarity_share,
-    validate_options, validate_points, weighted_mean_distance,
+    initial_hypotheses, inlier_distance, mean_distance, refine_check, refine_stalled,
+    similarity_candidates, similarity_share, validate_options, validate_points,
+    weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
 use crate::model::init::InitialPose;
@@ -269,7 +270,7 @@ fn distance_of(
 /// The refining stage on model `e`, as `fit` runs it, within `cap` steps of the model in all:
 /// checked every [`REFINE_CHECK_EVERY`] of the model's steps by [`refine_check`] (given up past
 /// [`crate::model::fit::REFINE_GIVE_UP`] times the least distance seen, `score` at first, or when
-/// the model grows too long); kept when at rest and no farther than `score`, else the model goes
+/// the model grows too long) and [`refine_stalled`]; kept when at rest and no farther than `score`, else the model goes
 /// back to its state before the stage. Returns the outcome and the steps that were undone.
 fn refine(
     app: &mut App,
@@ -310,6 +311,7 @@ fn refine(
             .paused = false;
     }
     let (mut least, mut gave_up, mut seen) = (score, false, start);
+    let mut previous = None;
     for _ in 0..=budget.saturating_sub(start) + 10 {
         app.update();
         let world = app.world();
@@ -336,9 +338,21 @@ fn refine(
                 .shape
                 .semi_axes()
                 .max_element();
+            let weighted = {
+                let range = app
+                    .world()
+                    .get::<RangeData>(e)
+                    .ok_or(FitError::Degenerate)?;
+                let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
+                let mut x = Vec::new();
+                state.node_positions(tess, &mut x);
+                inlier_distance(tess, &x, &range.forces)
+            };
+            let stalled = refine_stalled(weighted, previous);
+            previous = Some(weighted);
             match refine_check(distance, least, longest, start_extent) {
-                Some(l) => least = l,
-                None => {
+                Some(l) if !stalled => least = l,
+                _ => {
                     gave_up = true;
                     break;
                 }
