@@ -35,6 +35,19 @@ fn shipped_points(name: &str) -> Vec<DVec3> {
     bevy_deformable_sq::io::load_points(&path).expect("a cloud shipped with the crate")
 }
 
+/// A shipped cloud and its pure superquadric fit with the robust options (`fit --robust
+/// --global-only`).
+fn pure_robust_fit(name: &str) -> (Vec<DVec3>, FitReport) {
+    let points = shipped_points(name);
+    let opts = FitOptions {
+        global_only: true,
+        ..Default::default()
+    }
+    .robust();
+    let report = fit(&points, &opts, |_| {}).expect("fit");
+    (points, report)
+}
+
 fn global_fit(points: &[DVec3], influence: InfluenceMode) -> FitReport {
     let opts = FitOptions {
         global_only: true,
@@ -379,13 +392,7 @@ fn the_noisy_cylinders_refinement_comes_to_rest_on_the_continuous_surface() {
     // came closer to the points, then its length ran away, and was given up after 2003 steps; on
     // the continuous superquadric it comes to rest closer (measured: in 140 steps), and the fit is
     // within 1 % of EMS's (README "Side by side with EMS").
-    let points = shipped_points("ems/noisy_pointCloud_example_2.ply");
-    let robust = FitOptions {
-        global_only: true,
-        ..Default::default()
-    }
-    .robust();
-    let report = fit(&points, &robust, |_| {}).expect("fit");
+    let (_, report) = pure_robust_fit("ems/noisy_pointCloud_example_2.ply");
     let stage = report.refinement.expect("the robust options refine");
     assert!(stage.kept && !stage.gave_up, "{stage:?}");
     assert!(stage.after < 0.95 * stage.before, "{stage:?}");
@@ -422,13 +429,7 @@ fn the_refined_superquadric_lies_on_a_clean_clouds_points_between_the_nodes() {
     // chords, so the fitted superquadric passes through them between the nodes: measured on a
     // k = 151 tessellation (22 803 nodes), 0.00003 of the diagonal, as close as EMS's own fit
     // (0.00003); projected onto the chords it was 0.0006.
-    let points = shipped_points("ems/partial_pointCloud_example_2.ply");
-    let opts = FitOptions {
-        global_only: true,
-        ..Default::default()
-    }
-    .robust();
-    let report = fit(&points, &opts, |_| {}).expect("fit");
+    let (points, report) = pure_robust_fit("ems/partial_pointCloud_example_2.ply");
     assert!(report.refinement.is_some_and(|r| r.kept));
     let fine = Tessellation::new(151);
     let s = &report.state;

@@ -75,8 +75,8 @@ pub fn refine_check(distance: f64, least: f64, longest: f64, start: f64) -> Opti
         .then(|| least.min(distance))
 }
 
-/// A refinement whose inlier-weighted mean point-to-surface distance ([`weighted_mean_distance`]
-/// with the robust weights of the moment), checked every [`REFINE_CHECK_EVERY`] steps, fell by less
+/// A refinement whose inlier-weighted mean point-to-surface distance ([`refine_distances`], with
+/// the robust weights of the moment), checked every [`REFINE_CHECK_EVERY`] steps, fell by less
 /// than this fraction since the previous check is given up ([`refine_stalled`]): it is circling,
 /// not converging. On EMS's `partial_pointCloud_example_3` one similarity candidate's refinement
 /// went round a cycle of states (the largest node motion steady at 2.6e-3 of the RMS radius a
@@ -92,14 +92,19 @@ pub fn refine_stalled(weighted: f64, previous: Option<f64>) -> bool {
     previous.is_some_and(|p| weighted > (1.0 - REFINE_MIN_PROGRESS) * p)
 }
 
-/// The inlier-weighted mean distance of `range`'s points to the surface through `node_x`, each
-/// point weighted by its [`RangeForces::relative_weight`] (the refining stage's progress measure,
-/// [`refine_stalled`]).
-pub fn inlier_distance(tess: &Tessellation, node_x: &[DVec3], range: &RangeForces) -> f64 {
-    let weights: Vec<f64> = (0..range.points.len())
-        .map(|i| range.relative_weight(i))
-        .collect();
-    weighted_mean_distance(tess, node_x, &range.points, &weights)
+/// The refining stage's two measures at a check, from one pass over the point distances: the
+/// mean distance of `range`'s points to the surface through `node_x` ([`refine_check`]) and the
+/// same weighted by each point's [`RangeForces::relative_weight`] ([`refine_stalled`]).
+pub fn refine_distances(tess: &Tessellation, node_x: &[DVec3], range: &RangeForces) -> (f64, f64) {
+    let d = point_distances(tess, node_x, &range.points);
+    let mean = d.iter().sum::<f64>() / d.len().max(1) as f64;
+    let (mut total, mut weighted) = (0.0, 0.0);
+    for (i, d) in d.iter().enumerate() {
+        let w = range.relative_weight(i);
+        total += w;
+        weighted += w * d;
+    }
+    (mean, weighted / total.max(f64::MIN_POSITIVE))
 }
 
 /// How the first superquadric is placed.
@@ -913,10 +918,9 @@ impl<'a> Relaxation<'a> {
             if let Some(least) = self.refine_least
                 && self.steps.is_multiple_of(REFINE_CHECK_EVERY)
             {
-                let distance = mean_distance(tess, &self.x, &self.range.points);
+                let (distance, weighted) = refine_distances(tess, &self.x, &self.range);
                 let longest = self.state.shape.semi_axes().max_element();
                 self.refine_least = refine_check(distance, least, longest, self.refine_start);
-                let weighted = inlier_distance(tess, &self.x, &self.range);
                 if refine_stalled(weighted, self.refine_previous) {
                     self.refine_least = None;
                 }

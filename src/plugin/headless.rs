@@ -14,7 +14,7 @@ use crate::model::dynamics::ModelState;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
     Refinement, Stage, cross_section_dual, fit_residuals, global_stages, has_joint_stage,
-    initial_hypotheses, inlier_distance, mean_distance, refine_check, refine_stalled,
+    initial_hypotheses, mean_distance, refine_check, refine_distances, refine_stalled,
     similarity_candidates, similarity_share, validate_options, validate_points,
     weighted_mean_distance,
 };
@@ -332,22 +332,15 @@ fn refine(
         // `fit` checks after every step that did not end the stage at rest.
         let at_rest = driver.done && driver.converged;
         if !at_rest && seen.is_multiple_of(REFINE_CHECK_EVERY as u64) {
-            let distance = distance_of(app, e, tess, unit)?;
-            let longest = state_of(app.world(), e)
-                .ok_or(FitError::Degenerate)?
-                .shape
-                .semi_axes()
-                .max_element();
-            let weighted = {
-                let range = app
-                    .world()
-                    .get::<RangeData>(e)
-                    .ok_or(FitError::Degenerate)?;
-                let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
-                let mut x = Vec::new();
-                state.node_positions(tess, &mut x);
-                inlier_distance(tess, &x, &range.forces)
-            };
+            let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
+            let range = app
+                .world()
+                .get::<RangeData>(e)
+                .ok_or(FitError::Degenerate)?;
+            let mut x = Vec::new();
+            state.node_positions(tess, &mut x);
+            let (distance, weighted) = refine_distances(tess, &x, &range.forces);
+            let longest = state.shape.semi_axes().max_element();
             let stalled = refine_stalled(weighted, previous);
             previous = Some(weighted);
             match refine_check(distance, least, longest, start_extent) {
