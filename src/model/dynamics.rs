@@ -46,9 +46,7 @@ use super::deform::{GlobalDeformation, NUM_DEFORM};
 use super::fem::{ElementPoint, GridPowers, Tessellation};
 use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
 use super::linalg::cholesky_solve;
-use super::superquadric::{
-    NUM_SHAPE, SignedPowers, SuperquadricParams, shape_at, shape_from_powers, snapped_trig,
-};
+use super::superquadric::{NUM_SHAPE, SignedPowers, SuperquadricParams, Trig, shape_from_powers};
 use bevy::math::{DMat3, DQuat, DVec3};
 
 /// Number of global degrees of freedom: q_c (3) + q_θ (4) + q_s (6) + q_T (4, tapering and
@@ -160,7 +158,13 @@ impl<'a> ModelSurface<'a> {
 
     /// x(u, v) at material coordinates (u, v) that lie at `at` of their element.
     pub fn at(&self, u: f64, v: f64, at: &ElementPoint) -> DVec3 {
-        let mut s = shape_at(&self.shape, u, v);
+        self.at_terms(&Trig::new(u, v), at)
+    }
+
+    /// [`Self::at`] from the [`Trig`] terms of (u, v), which a caller may keep across steps: the
+    /// surface then costs four `exp` ([`SignedPowers::from_logs`]) and no sine or cosine.
+    pub fn at_terms(&self, t: &Trig, at: &ElementPoint) -> DVec3 {
+        let mut s = shape_from_powers(&self.shape, &SignedPowers::from_logs(&self.shape, t));
         if !self.deformation.is_identity() {
             s = self.deformation.apply(s, self.shape.semi_axes().z);
         }
@@ -188,12 +192,20 @@ impl<'a> ModelSurface<'a> {
         v: f64,
         at: &ElementPoint,
     ) -> (DVec3, Option<(DVec3, DVec3)>) {
+        self.with_tangents_terms(&Trig::new(u, v), at)
+    }
+
+    /// [`Self::with_tangents`] from the [`Trig`] terms of (u, v) (see [`Self::at_terms`]).
+    pub fn with_tangents_terms(
+        &self,
+        t: &Trig,
+        at: &ElementPoint,
+    ) -> (DVec3, Option<(DVec3, DVec3)>) {
         let q = &self.shape;
-        let trig = snapped_trig(u, v);
-        let p = SignedPowers::of_trig(q, trig);
+        let p = SignedPowers::from_logs(q, t);
         let s = shape_from_powers(q, &p);
-        let [cu, su, cv, sv] = trig;
-        let regular = trig.iter().all(|t| t.abs() >= 1e-9);
+        let (cu, su, cv, sv) = (t.cu, t.su, t.cv, t.sv);
+        let regular = [cu, su, cv, sv].iter().all(|t| t.abs() >= 1e-9);
         let scaled = q.a * DVec3::new(q.a1, q.a2, q.a3);
         let ds = regular.then(|| {
             let dcu = -q.e1 * su / cu * p.cu;

@@ -205,6 +205,26 @@ impl SignedPowers {
             sv: spow(sv, q.e2),
         }
     }
+
+    /// The signed powers from a point's [`Trig`] terms as sgn(c) exp(ε ln|c|): four `exp` in place
+    /// of four `powf`, for a caller that keeps the terms of a point across steps while the
+    /// exponents change (the refining stage's points of influence, `forces::range`). Equal to
+    /// [`Self::new`] to a few ulps.
+    pub fn from_logs(q: &SuperquadricParams, t: &Trig) -> Self {
+        let p = |c: f64, ln: f64, e: f64| {
+            if c == 0.0 {
+                0.0
+            } else {
+                c.signum() * (e * ln).exp()
+            }
+        };
+        Self {
+            cu: p(t.cu, t.ln_cu, q.e1),
+            su: p(t.su, t.ln_su, q.e1),
+            cv: p(t.cv, t.ln_cv, q.e2),
+            sv: p(t.sv, t.ln_sv, q.e2),
+        }
+    }
 }
 
 /// [cos u, sin u, cos v, sin v], each snapped to exactly 0 where it is zero in exact arithmetic
@@ -300,6 +320,28 @@ mod tests {
                     (fd - *analytic).length() < 1e-7,
                     "column {col} at ({u},{v}): analytic {analytic:?} vs fd {fd:?}"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn signed_powers_from_logs_equal_the_powers() {
+        use std::f64::consts::{FRAC_PI_2, PI};
+        let us = [-FRAC_PI_2, -1.2, -0.3, 0.0, 1e-7, 0.8, FRAC_PI_2];
+        let vs = [-PI, -2.0, -FRAC_PI_2, 0.0, 0.4, FRAC_PI_2, 2.9, PI];
+        for (e1, e2) in [(0.1, 1.9), (0.7, 1.3), (1.0, 1.0), (1.6, 0.2)] {
+            let q = SuperquadricParams { e1, e2, ..params() };
+            for u in us {
+                for v in vs {
+                    let t = Trig::new(u, v);
+                    let (a, b) = (SignedPowers::new(&q, &t), SignedPowers::from_logs(&q, &t));
+                    for (x, y) in [(a.cu, b.cu), (a.su, b.su), (a.cv, b.cv), (a.sv, b.sv)] {
+                        // Zeros exactly, signs kept, values to a few ulps (of ε ln|c|).
+                        assert_eq!(x == 0.0, y == 0.0, "u {u} v {v}: {x} vs {y}");
+                        assert_eq!(x.signum(), y.signum());
+                        assert!((x - y).abs() <= 4e-15 * x.abs(), "u {u} v {v}: {x} vs {y}");
+                    }
+                }
             }
         }
     }

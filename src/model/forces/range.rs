@@ -59,6 +59,7 @@
 
 use crate::model::dynamics::{ModelSurface, NodalForces};
 use crate::model::fem::{ElementPoint, Tessellation};
+use crate::model::superquadric::Trig;
 use bevy::math::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
@@ -116,6 +117,30 @@ pub struct RangeForces {
     /// the same point. Empty when points of influence lie on the triangles. A reassignment onto a
     /// node sets its entry to zero.
     pub surface_offset: Vec<DVec3>,
+    /// The [`Trig`] terms of each point of influence's (u, v) as the last [`Self::migrate`] on the
+    /// continuous surface left it, so that the next one evaluates the surface there without a
+    /// sine, a cosine or a logarithm. An entry whose (u, v) is no longer its point's is computed
+    /// afresh.
+    surface_terms: Vec<SurfaceTerms>,
+}
+
+/// A point of influence's material coordinates and their [`Trig`] terms.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct SurfaceTerms {
+    u: f64,
+    v: f64,
+    trig: Trig,
+}
+
+impl SurfaceTerms {
+    /// The terms at (u, v).
+    fn new(u: f64, v: f64) -> Self {
+        Self {
+            u,
+            v,
+            trig: Trig::new(u, v),
+        }
+    }
 }
 
 /// The tangential stiffness of a point-to-plane spring as a fraction μ of its normal stiffness:
@@ -238,6 +263,7 @@ impl RangeForces {
             robust: None,
             plane: false,
             surface_offset: Vec::new(),
+            surface_terms: Vec::new(),
         }
     }
 
@@ -545,19 +571,17 @@ impl RangeForces {
     ) {
         let InfluenceMode::Migrating { rate } = self.mode else {
             self.surface_offset.clear();
+            self.surface_terms.clear();
             return;
-        };
-        // On a node the surface is the node (to rounding, which must not make a point that
-        // migration cannot move look farther than its node and be reassigned every time).
-        let position = |u: f64, v: f64, at: &ElementPoint| match surface {
-            Some(s) if at.weights[0] != 1.0 => s.at(u, v, at),
-            _ => at.interpolate(|k| node_x[k]),
         };
         let m = self.points.len();
         if surface.is_some() {
             self.surface_offset.resize(m, DVec3::ZERO);
+            self.surface_terms
+                .resize(m, SurfaceTerms::new(f64::NAN, f64::NAN));
         } else {
             self.surface_offset.clear();
+            self.surface_terms.clear();
         }
         for (i, (r, inf)) in self
             .points
@@ -565,6 +589,21 @@ impl RangeForces {
             .zip(self.influence.iter_mut())
             .enumerate()
         {
+            // The terms of the point's (u, v): kept from the last migration unless the point
+            // has been reassigned since.
+            let terms = surface.map(|_| {
+                let kept = &mut self.surface_terms[i];
+                if kept.u != inf.u || kept.v != inf.v {
+                    *kept = SurfaceTerms::new(inf.u, inf.v);
+                }
+                kept.trig
+            });
+            // On a node the surface is the node (to rounding, which must not make a point that
+            // migration cannot move look farther than its node and be reassigned every time).
+            let position = |t: &Trig, at: &ElementPoint| match surface {
+                Some(s) if at.weights[0] != 1.0 => s.at_terms(t, at),
+                _ => at.interpolate(|k| node_x[k]),
+            };
             // A point reassigned onto a node has no shape-function derivatives there; its
             // element's are the mesh's tangents.
             let located;
@@ -577,9 +616,9 @@ impl RangeForces {
             let mesh_tangent = |d: &[f64; 4]| -> DVec3 {
                 (0..4).map(|k| d[k] * node_x[at.nodes[k] as usize]).sum()
             };
-            let (x, tangents) = match surface {
-                Some(s) => {
-                    let (x, t) = s.with_tangents(inf.u, inf.v, at);
+            let (x, tangents) = match (surface, &terms) {
+                (Some(s), Some(t)) => {
+                    let (x, tangents) = s.with_tangents_terms(t, at);
                     let on_node = inf.at.weights[0] == 1.0;
                     (
                         if on_node {
@@ -587,10 +626,10 @@ impl RangeForces {
                         } else {
                             x
                         },
-                        t,
+                        tangents,
                     )
                 }
-                None => (inf.at.interpolate(|k| node_x[k]), None),
+                _ => (inf.at.interpolate(|k| node_x[k]), None),
             };
             let (tu, tv) = tangents.unwrap_or_else(|| (mesh_tangent(&at.du), mesh_tangent(&at.dv)));
             let f = *r - x;
@@ -632,10 +671,18 @@ impl RangeForces {
                 for _ in 0..4 {
                     let (u, v) = Tessellation::wrap(inf.u + du, inf.v + dv);
                     let at = tess.locate(u, v);
-                    let moved = position(u, v, &at);
+                    // The trial's terms become the point's if the move is taken.
+                    let trial = surface.map(|_| SurfaceTerms::new(u, v));
+                    let moved = match &trial {
+                        Some(t) => position(&t.trig, &at),
+                        None => at.interpolate(|k| node_x[k]),
+                    };
                     if moved.distance_squared(*r) <= here {
                         *inf = Influence { u, v, at };
                         foot = moved;
+                        if let Some(t) = trial {
+                            self.surface_terms[i] = t;
+                        }
                         break;
                     }
                     du *= 0.5;
@@ -801,6 +848,57 @@ mod tests {
         // The springs' energy sees the same points.
         let e = 0.5 * exact.point_weight(&tess) * 3.0 * 0.09;
         assert!((exact.energy(&tess, &x) - e).abs() < 1e-6 * e);
+    }
+
+    #[test]
+    fn the_kept_surface_terms_change_no_migration() {
+        // Migrations that keep each point's terms from the last one, and migrations that
+        // compute them afresh every time, on a superquadric whose exponents change between
+        // them: the same points of influence to the bit, and every kept entry is its point's.
+        let shape = SuperquadricParams {
+            a1: 0.9,
+            a2: 0.7,
+            e1: 0.4,
+            e2: 1.5,
+            ..Default::default()
+        };
+        let tess = Tessellation::new(12);
+        let mut state = ModelState::new(&tess, DVec3::ZERO, DQuat::IDENTITY, shape);
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        let mut kept = RangeForces::new(
+            pseudo_random(200, 5),
+            1.0,
+            InfluenceMode::Migrating { rate: 1.0 },
+        );
+        kept.reassign(&tess, &x);
+        let mut fresh = kept.clone();
+        for step in 0..12 {
+            state.shape.e1 = 0.4 + 0.02 * step as f64;
+            state.shape.e2 = 1.5 - 0.03 * step as f64;
+            state.node_positions(&tess, &mut x);
+            if step == 6 {
+                kept.reassign(&tess, &x);
+                fresh.reassign(&tess, &x);
+            }
+            fresh.surface_terms.clear();
+            kept.migrate(&tess, &x, Some(&state.surface()));
+            fresh.migrate(&tess, &x, Some(&state.surface()));
+            assert_eq!(kept.influence, fresh.influence, "step {step}");
+            assert_eq!(kept.surface_offset, fresh.surface_offset, "step {step}");
+        }
+        for (inf, terms) in kept.influence.iter().zip(&kept.surface_terms) {
+            if (terms.u, terms.v) == (inf.u, inf.v) {
+                assert_eq!(terms.trig, Trig::new(inf.u, inf.v));
+            }
+        }
+        assert!(
+            kept.influence
+                .iter()
+                .zip(&kept.surface_terms)
+                .any(|(inf, t)| (t.u, t.v) == (inf.u, inf.v)),
+            "no point kept its terms"
+        );
     }
 
     #[test]
