@@ -270,8 +270,8 @@ fn distance_of(
 /// The refining stage on model `e`, as `fit` runs it, within `cap` steps of the model in all:
 /// checked every [`REFINE_CHECK_EVERY`] of the model's steps by [`refine_check`] (given up past
 /// [`crate::model::fit::REFINE_GIVE_UP`] times the least distance seen, `score` at first, or when
-/// the model grows too long) and [`refine_stalled`]; kept when at rest and no farther than `score`, else the model goes
-/// back to its state before the stage. Returns the outcome and the steps that were undone.
+/// the model grows too long) and [`refine_stalled`]; kept when at rest and no farther than
+/// `score`, else the model goes back to its state before the stage. Returns the outcome and the steps that were undone.
 fn refine(
     app: &mut App,
     e: Entity,

@@ -597,21 +597,6 @@ impl RangeForces {
             .zip(self.influence.iter_mut())
             .enumerate()
         {
-            // The terms of the point's (u, v): kept from the last migration unless the point
-            // has been reassigned since.
-            let terms = surface.map(|_| {
-                let kept = &mut self.surface_terms[i];
-                if kept.u != inf.u || kept.v != inf.v {
-                    *kept = SurfaceTerms::new(inf.u, inf.v);
-                }
-                kept.trig
-            });
-            // On a node the surface is the node (to rounding, which must not make a point that
-            // migration cannot move look farther than its node and be reassigned every time).
-            let position = |t: &Trig, at: &ElementPoint| match surface {
-                Some(s) if at.weights[0] != 1.0 => s.at_terms(t, at),
-                _ => at.interpolate(|k| node_x[k]),
-            };
             // A point reassigned onto a node has no shape-function derivatives there; its
             // element's are the mesh's tangents.
             let located;
@@ -624,9 +609,15 @@ impl RangeForces {
             let mesh_tangent = |d: &[f64; 4]| -> DVec3 {
                 (0..4).map(|k| d[k] * node_x[at.nodes[k] as usize]).sum()
             };
-            let (x, tangents) = match (surface, &terms) {
-                (Some(s), Some(t)) => {
-                    let (x, tangents) = s.with_tangents_terms(t, at);
+            let (x, tangents) = match surface {
+                Some(s) => {
+                    // The terms of the point's (u, v): kept from the last migration unless the
+                    // point has been reassigned since.
+                    let kept = &mut self.surface_terms[i];
+                    if kept.u != inf.u || kept.v != inf.v {
+                        *kept = SurfaceTerms::new(inf.u, inf.v);
+                    }
+                    let (x, tangents) = s.with_tangents_terms(&kept.trig, at);
                     let on_node = inf.at.weights[0] == 1.0;
                     (
                         if on_node {
@@ -637,7 +628,7 @@ impl RangeForces {
                         tangents,
                     )
                 }
-                _ => (inf.at.interpolate(|k| node_x[k]), None),
+                None => (inf.at.interpolate(|k| node_x[k]), None),
             };
             let (tu, tv) = tangents.unwrap_or_else(|| (mesh_tangent(&at.du), mesh_tangent(&at.dv)));
             let f = *r - x;
@@ -679,16 +670,19 @@ impl RangeForces {
                 for _ in 0..4 {
                     let (u, v) = Tessellation::wrap(inf.u + du, inf.v + dv);
                     let at = tess.locate(u, v);
-                    // The trial's terms become the point's if the move is taken.
-                    let trial = surface.map(|_| SurfaceTerms::new(u, v));
+                    // The trial's terms become the point's if the move is taken. On a node the
+                    // surface is the node (to rounding, which must not make a point that
+                    // migration cannot move look farther than its node and be reassigned every
+                    // time).
+                    let trial = surface.map(|s| (s, SurfaceTerms::new(u, v)));
                     let moved = match &trial {
-                        Some(t) => position(&t.trig, &at),
-                        None => at.interpolate(|k| node_x[k]),
+                        Some((s, t)) if at.weights[0] != 1.0 => s.at_terms(&t.trig, &at),
+                        _ => at.interpolate(|k| node_x[k]),
                     };
                     if moved.distance_squared(*r) <= here {
                         *inf = Influence { u, v, at };
                         foot = moved;
-                        if let Some(t) = trial {
+                        if let Some((_, t)) = trial {
                             self.surface_terms[i] = t;
                         }
                         break;
