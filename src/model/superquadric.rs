@@ -206,8 +206,8 @@ impl SignedPowers {
         }
     }
 
-    /// The signed powers from a point's [`Trig`] terms as sgn(c) exp(ε ln|c|): four `exp` in place
-    /// of four `powf`, for a caller that keeps the terms of a point across steps while the
+    /// The signed powers of eq. (4) from a point's [`Trig`] terms as sgn(c) exp(ε ln|c|): four
+    /// `exp` in place of four `powf`, for a caller that keeps the terms of a point across steps while the
     /// exponents change (the refining stage's points of influence, `forces::range`). Equal to
     /// [`Self::new`] to a few ulps.
     pub fn from_logs(q: &SuperquadricParams, t: &Trig) -> Self {
