@@ -533,6 +533,8 @@ pub struct Workspace {
     kd: Vec<DVec3>,
     local_force: Vec<DVec3>,
     new_d: Vec<DVec3>,
+    /// Each node's sub-step factor h / (γ A_i + h κ_i), so a sub-step divides nothing.
+    substep_scale: Vec<f64>,
     row_bounds: Vec<f64>,
     inv_area: Vec<f64>,
     row_bounds_key: Option<(f64, f64, usize)>,
@@ -1210,18 +1212,18 @@ pub fn step_prepared(
             report.clamped = true;
         }
         report.substeps = substeps;
+        // Data springs linearised about the start of the step, F(d) = F(d⁰) − κ (d − d⁰), and
+        // taken implicitly (they are diagonal): d += h (f − κ (d − d⁰) − K d) / (γ A + h κ).
+        ws.substep_scale.clear();
+        ws.substep_scale
+            .extend((0..n).map(|i| h / (gamma * tess.node_area[i] + h * forces.stiffness[i])));
         for _ in 0..substeps {
             ws.kd.clear();
             ws.kd.resize(n, DVec3::ZERO);
             tess.apply_stiffness(w0, w1, &ws.new_d, &mut ws.kd);
             for i in 0..n {
-                // Data springs linearised about the start of the step, F(d) = F(d⁰) − κ (d − d⁰),
-                // and taken implicitly (they are diagonal).
-                let kappa = forces.stiffness[i];
-                let spring = kappa * (ws.new_d[i] - state.displacement[i]);
-                let rate = (ws.local_force[i] - spring - ws.kd[i])
-                    / (gamma * tess.node_area[i] + h * kappa);
-                ws.new_d[i] += h * rate;
+                let spring = forces.stiffness[i] * (ws.new_d[i] - state.displacement[i]);
+                ws.new_d[i] += ws.substep_scale[i] * (ws.local_force[i] - spring - ws.kd[i]);
             }
         }
     }

@@ -234,6 +234,8 @@ pub struct Tessellation {
     /// Lumped nodal area A_i = ∫ N_i du (row sums of the mass matrices); Σ A_i is the area the
     /// elements cover in (u, v).
     pub node_area: Vec<f64>,
+    /// |Ω| = Σ A_i, summed once (the range springs' weight β |Ω| / m needs it every step).
+    pub area: f64,
 }
 
 /// Signed powers of a superquadric on the tessellation's grid. Node (ring i, longitude j) has
@@ -349,6 +351,7 @@ impl Tessellation {
             north_matrices: triangle_element(Cap::North, h_u, h_v),
             south_matrices: triangle_element(Cap::South, h_u, h_v),
             node_area: Vec::new(),
+            area: 0.0,
             tris: Vec::new(),
             edges: Vec::new(),
         };
@@ -360,6 +363,7 @@ impl Tessellation {
                 area[n as usize] += grad_mass.1[a].iter().sum::<f64>();
             }
         });
+        t.area = area.iter().sum();
         t.node_area = area;
         t
     }
@@ -480,39 +484,31 @@ impl Tessellation {
     /// element. Equal to [`Tessellation::apply_stiffness_by_element`] up to rounding (tested).
     pub fn apply_stiffness(&self, w0: f64, w1: f64, q: &[DVec3], out: &mut [DVec3]) {
         let kq = self.quad_matrices.stiffness(w0, w1);
+        // A node is corner 0 of quad (i, j) and corner 3 of quad (i, j − 1) in the band above
+        // it, corner 1 of quad (i − 1, j) and corner 2 of quad (i − 1, j − 1) in the band below.
+        // Each band sums to weights on the node's ring at (j − 1, j, j + 1) and the same on the
+        // band's other ring.
+        let above_own = [kq[3][0], kq[0][0] + kq[3][3], kq[0][3]];
+        let above_ring = [kq[3][1], kq[0][1] + kq[3][2], kq[0][2]];
+        let below_own = [kq[2][1], kq[1][1] + kq[2][2], kq[1][2]];
+        let below_ring = [kq[2][0], kq[1][0] + kq[2][3], kq[1][3]];
+        let both_own: [f64; 3] = std::array::from_fn(|a| above_own[a] + below_own[a]);
         let k = self.k;
         let row = |i: usize| &q[1 + i * k..1 + (i + 1) * k];
         for i in 0..k {
-            let here = row(i);
-            let above = (i + 1 < k).then(|| row(i + 1));
-            let below = (i > 0).then(|| row(i - 1));
             let o = &mut out[1 + i * k..1 + (i + 1) * k];
-            for j in 0..k {
-                let jm = if j == 0 { k - 1 } else { j - 1 };
-                let jp = if j + 1 == k { 0 } else { j + 1 };
-                let (h, hm, hp) = (here[j], here[jm], here[jp]);
-                let mut acc = DVec3::ZERO;
-                if let Some(a) = above {
-                    // This node is corner 0 of quad (i, j) and corner 3 of quad (i, j − 1).
-                    acc += (kq[0][0] + kq[3][3]) * h
-                        + kq[0][1] * a[j]
-                        + kq[0][2] * a[jp]
-                        + kq[0][3] * hp
-                        + kq[3][0] * hm
-                        + kq[3][1] * a[jm]
-                        + kq[3][2] * a[j];
-                }
-                if let Some(b) = below {
-                    // Corner 1 of quad (i − 1, j) and corner 2 of quad (i − 1, j − 1).
-                    acc += (kq[1][1] + kq[2][2]) * h
-                        + kq[1][0] * b[j]
-                        + kq[1][2] * hp
-                        + kq[1][3] * b[jp]
-                        + kq[2][0] * b[jm]
-                        + kq[2][1] * hm
-                        + kq[2][3] * b[j];
-                }
-                o[j] += acc;
+            let (up, down) = ((i + 1 < k).then(|| row(i + 1)), (i > 0).then(|| row(i - 1)));
+            let own = match (up, down) {
+                (Some(_), Some(_)) => both_own,
+                (Some(_), None) => above_own,
+                (None, _) => below_own,
+            };
+            add_ring_stencil(own, row(i), o);
+            if let Some(a) = up {
+                add_ring_stencil(above_ring, a, o);
+            }
+            if let Some(b) = down {
+                add_ring_stencil(below_ring, b, o);
             }
         }
         apply_elements(&self.north, &self.north_matrices.stiffness(w0, w1), q, out);
@@ -641,6 +637,19 @@ impl Tessellation {
         }
         out
     }
+}
+
+/// Adds w₋ x_(j−1) + w₀ x_j + w₊ x_(j+1) to `out[j]` round one ring (j ± 1 wrapping): one row of
+/// [`Tessellation::apply_stiffness`]'s 9-point stencil, `w` = [w₋, w₀, w₊].
+#[inline(always)]
+fn add_ring_stencil(w: [f64; 3], x: &[DVec3], out: &mut [DVec3]) {
+    // A ring has k ≥ MIN_K = 3 nodes.
+    let k = x.len();
+    out[0] += w[0] * x[k - 1] + w[1] * x[0] + w[2] * x[1];
+    for j in 1..k - 1 {
+        out[j] += w[0] * x[j - 1] + w[1] * x[j] + w[2] * x[j + 1];
+    }
+    out[k - 1] += w[0] * x[k - 2] + w[1] * x[k - 1] + w[2] * x[0];
 }
 
 #[cfg(test)]
@@ -971,6 +980,7 @@ mod tests {
         let expected =
             (t.k - 1) as f64 * t.k as f64 * t.h_u * t.h_v + 2.0 * t.k as f64 * 0.5 * t.h_u * t.h_v;
         assert!((total - expected).abs() < 1e-12);
+        assert_eq!(t.area, total);
         assert!(t.node_area.iter().all(|&a| a > 0.0));
     }
 }

@@ -510,7 +510,7 @@ fn critical_step(
     } else {
         0.0
     };
-    let mass = inertia.mass_density * tess.node_area.iter().sum::<f64>();
+    let mass = inertia.mass_density * tess.area;
     let springs: f64 =
         forces.stiffness.iter().sum::<f64>() + forces.shape_stiffness.iter().sum::<f64>();
     let omega2 = local.max(4.0 * springs / mass);

@@ -320,7 +320,7 @@ impl RangeForces {
 
     /// The spring constant w = β |Ω| / m of each point.
     pub fn point_weight(&self, tess: &Tessellation) -> f64 {
-        let area: f64 = tess.node_area.iter().sum();
+        let area = tess.area;
         if self.points.is_empty() {
             0.0
         } else {
