@@ -25,6 +25,7 @@ use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fit::{FitOptions, Stage, residuals};
 use bevy_deformable_sq::model::image_fit::ellipsoid_from_points;
 use bevy_deformable_sq::model::joint::JointEnd;
+use bevy_deformable_sq::model::superquadric::{LEAST_EPSILON, MAX_EPSILON};
 use bevy_deformable_sq::plugin::scene::{default_assets_dir, save_scene};
 use bevy_deformable_sq::plugin::{FitDriver, Scratch};
 use bevy_deformable_sq::prelude::*;
@@ -974,8 +975,10 @@ fn inspector(
             ui.add(edit_slider(&mut g.a1, 0.05..=1.0).text("a1"));
             ui.add(edit_slider(&mut g.a2, 0.05..=1.0).text("a2"));
             ui.add(edit_slider(&mut g.a3, 0.05..=1.0).text("a3"));
-            ui.add(edit_slider(&mut g.e1, 0.1..=2.0).text("ε1"));
-            ui.add(edit_slider(&mut g.e2, 0.1..=2.0).text("ε2"));
+            // Down to the least ε a shape may hold; the step keeps one set below 0.1 there.
+            let e_range = LEAST_EPSILON..=MAX_EPSILON;
+            ui.add(edit_slider(&mut g.e1, e_range.clone()).text("ε1"));
+            ui.add(edit_slider(&mut g.e2, e_range).text("ε2"));
             // Tapering and bending (beyond the paper; model::deform). The step keeps them within
             // their bounds for the shape.
             ui.add(edit_slider(&mut g.taper[0], -MAX_TAPER..=MAX_TAPER).text("taper x"));

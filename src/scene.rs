@@ -46,7 +46,7 @@ use crate::model::init::{InitialPose, initial_pose};
 use crate::model::joint::JointEnd;
 use crate::model::noise::{NOISE_NEIGHBOURS, NoiseEstimate, estimate_noise, stiffness_for_noise};
 use crate::model::parts::{PARTITION_ROUNDS, partition};
-use crate::model::superquadric::{MAX_EPSILON, MIN_EPSILON, SuperquadricParams};
+use crate::model::superquadric::{LEAST_EPSILON, MAX_EPSILON, SuperquadricParams};
 use bevy::math::{DQuat, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
@@ -937,11 +937,11 @@ impl PartDef {
                     check(file, &f(&format!("placement.shape.{n}")), v, 0.0, true)?;
                 }
                 for (n, v) in [("e1", shape.e1), ("e2", shape.e2)] {
-                    if !(MIN_EPSILON..=MAX_EPSILON).contains(&v) {
+                    if !(LEAST_EPSILON..=MAX_EPSILON).contains(&v) {
                         return Err(SceneError::at_field(
                             file,
                             f(&format!("placement.shape.{n}")),
-                            format!("must lie in [{MIN_EPSILON}, {MAX_EPSILON}], found {v}"),
+                            format!("must lie in [{LEAST_EPSILON}, {MAX_EPSILON}], found {v}"),
                         ));
                     }
                 }

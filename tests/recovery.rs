@@ -9,7 +9,7 @@ use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{FitOptions, FitReport, fit, point_distances, residuals};
 use bevy_deformable_sq::model::forces::range::{InfluenceMode, RangeForces};
 use bevy_deformable_sq::model::init::initial_pose;
-use bevy_deformable_sq::model::superquadric::SuperquadricParams;
+use bevy_deformable_sq::model::superquadric::{MIN_EPSILON, SuperquadricParams};
 use bevy_deformable_sq::synthetic::superquadric_cloud;
 
 fn truth() -> (SuperquadricParams, DVec3, DQuat) {
@@ -397,8 +397,16 @@ fn the_noisy_cylinders_refinement_comes_to_rest_on_the_continuous_surface() {
     assert!(stage.kept && !stage.gave_up, "{stage:?}");
     assert!(stage.after < 0.95 * stage.before, "{stage:?}");
     assert!(stage.steps < 1000, "{stage:?}");
-    // EMS's fit lies 0.01473 of the diagonal from the points (compare_ems).
-    assert!(report.residuals.mean < 0.0150, "{:?}", report.residuals);
+    // EMS's fit (ε1 = 0.01) lies 0.01473 of the diagonal from the points, its p95 0.06751
+    // (compare_ems). Ours comes to rest at the dynamics' bound ε1 = 0.1, 0.01485 from them; the
+    // squareness extension takes ε1 below it (measured: to 0.01, mean 0.01468, p95 0.06698).
+    let r = &report.residuals;
+    assert!(
+        report.state.shape.e1 < MIN_EPSILON,
+        "{:?}",
+        report.state.shape
+    );
+    assert!(r.mean <= 0.01473 && r.p95 <= 0.06751, "{r:?}");
 }
 
 #[test]

@@ -320,6 +320,21 @@ fn an_outlier_fraction_of_one_or_more_is_refused_and_a_valid_one_reaches_the_fit
 }
 
 #[test]
+fn an_exponent_below_the_least_is_refused_and_one_a_fit_can_write_is_read() {
+    // A pure superquadric fit may end with an exponent below the dynamics' bound (the squareness
+    // extension, down to LEAST_EPSILON = 0.01): its scene must load.
+    let e = parse_err(&scene_text(&GOOD_PART.replace("e1: 1.0", "e1: 0.005"), PTS));
+    assert_names(
+        &e,
+        Some("parts[0].placement.shape.e1"),
+        None,
+        "must lie in [0.01, 2], found 0.005",
+    );
+    let text = scene_text(&GOOD_PART.replace("e2: 1.0", "e2: 0.01"), PTS);
+    assert!(SceneDef::parse(&text, Path::new("good.dsq.ron")).is_ok());
+}
+
+#[test]
 fn k_below_3_is_refused_with_the_field() {
     let e = parse_err(&scene_text(&GOOD_PART.replace("k: 5", "k: 2"), PTS));
     assert_names(&e, Some("parts[0].k"), None, "found 2");

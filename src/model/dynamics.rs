@@ -1247,7 +1247,7 @@ pub fn step_prepared(
     }
     let shape_q = state.shape.to_array();
     let shape = SuperquadricParams::from_array(std::array::from_fn(|j| shape_q[j] + delta[7 + j]))
-        .normalized();
+        .normalized_keeping(&state.shape);
     let deform_q = state.deformation.to_array();
     let deformation = GlobalDeformation::from_array(std::array::from_fn(|j| {
         deform_q[j] + delta[DEFORM_START + j]
@@ -1709,6 +1709,24 @@ pub(crate) mod tests {
         assert!(held.deformation.is_identity());
     }
 
+    /// Unit-stiffness forces on every node, `force(along)` from its coordinate along the model's
+    /// z axis.
+    fn axial_pull(
+        tess: &Tessellation,
+        state: &ModelState,
+        force: impl Fn(f64) -> DVec3,
+    ) -> NodalForces {
+        let mut x = Vec::new();
+        state.node_positions(tess, &mut x);
+        let mut forces = NodalForces::new(tess.node_count());
+        let axis = rotation_matrix(state.rotation) * DVec3::Z;
+        for i in 0..x.len() {
+            forces.force[i] = force((x[i] - state.translation).dot(axis));
+            forces.stiffness[i] = 1.0;
+        }
+        forces
+    }
+
     #[test]
     fn taper_and_bend_stay_within_bounds_under_any_pull() {
         // Huge opposite pulls on the two ends, sideways: the state stays finite and q_T within
@@ -1723,17 +1741,10 @@ pub(crate) mod tests {
         params.free.bend = true;
         let mut ws = Workspace::default();
         for k in 0..200 {
-            let mut x = Vec::new();
-            state.node_positions(&tess, &mut x);
-            let mut forces = NodalForces::new(tess.node_count());
-            let axis = rotation_matrix(state.rotation) * DVec3::Z;
             let side = rotation_matrix(state.rotation) * DVec3::X;
-            for i in 0..x.len() {
-                let along = (x[i] - state.translation).dot(axis);
-                forces.force[i] =
-                    1e4 * along.signum() * side * if k % 50 < 25 { 1.0 } else { -3.0 };
-                forces.stiffness[i] = 1.0;
-            }
+            let forces = axial_pull(&tess, &state, |along| {
+                1e4 * along.signum() * side * if k % 50 < 25 { 1.0 } else { -3.0 }
+            });
             step(&tess, &mut state, &forces, &params, &mut ws).expect("finite");
             assert!(state.is_finite());
             assert_eq!(
@@ -1742,6 +1753,35 @@ pub(crate) mod tests {
             );
         }
         assert!(!state.deformation.is_identity());
+    }
+
+    #[test]
+    fn an_exponent_set_below_the_bound_neither_jumps_to_it_nor_sinks_further() {
+        // A box-like shape with ε1 = 0.03 (as the squareness extension leaves one), squeezed and
+        // then stretched along z: ε1 may rise, fall back to 0.03, never below it, and does not
+        // jump to MIN_EPSILON at the first step.
+        use crate::model::superquadric::MIN_EPSILON;
+        let tess = Tessellation::new(8);
+        let mut state = test_state(&tess);
+        state.shape.e1 = 0.03;
+        let params = DynamicsParams::default();
+        let mut ws = Workspace::default();
+        let mut seen = Vec::new();
+        for k in 0..60 {
+            let axis = rotation_matrix(state.rotation) * DVec3::Z;
+            let forces = axial_pull(&tess, &state, |along| {
+                along * axis * if k < 30 { -5.0 } else { 5.0 }
+            });
+            step(&tess, &mut state, &forces, &params, &mut ws).expect("finite");
+            assert!(
+                state.is_finite() && state.shape.e1 >= 0.03,
+                "{:?}",
+                state.shape
+            );
+            seen.push(state.shape.e1);
+        }
+        assert!(seen[0] < MIN_EPSILON, "{seen:?}");
+        assert!(seen.iter().any(|&e| e != 0.03), "ε1 never moved: {seen:?}");
     }
 
     #[test]

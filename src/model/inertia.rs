@@ -42,7 +42,9 @@ use super::dynamics::{DynamicsParams, FreeDofs, ModelState, NodalForces, StepErr
 use super::fem::{GridPowers, Tessellation};
 use super::frame::rotation_matrix;
 use super::linalg::cholesky_solve;
-use super::superquadric::{MAX_EPSILON, MIN_ASPECT, MIN_EPSILON, SuperquadricParams};
+use super::superquadric::{
+    LEAST_EPSILON, MAX_EPSILON, MIN_ASPECT, MIN_EPSILON, SuperquadricParams,
+};
 use bevy::math::{DMat3, DQuat, DVec3};
 
 /// Number of global velocity coordinates: ċ (3), Ω (3), Ȧ (3), ε̇ (2), q̇_T (4).
@@ -621,9 +623,11 @@ fn advance(state: &mut ModelState, v: &mut Velocity, h: f64) {
         state.shape.e1 + h * v.epsilon[0],
         state.shape.e2 + h * v.epsilon[1],
     ];
-    let e = e.map(|x| x.clamp(MIN_EPSILON, MAX_EPSILON));
+    // An exponent set below MIN_EPSILON may stay down there (`normalized_keeping`).
+    let floor = [state.shape.e1, state.shape.e2].map(|was| was.clamp(LEAST_EPSILON, MIN_EPSILON));
+    let e: [f64; 2] = std::array::from_fn(|k| e[k].clamp(floor[k], MAX_EPSILON));
     for k in 0..2 {
-        if e[k] == MIN_EPSILON || e[k] == MAX_EPSILON {
+        if e[k] == floor[k] || e[k] == MAX_EPSILON {
             v.epsilon[k] = 0.0;
         }
     }

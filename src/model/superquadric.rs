@@ -16,8 +16,16 @@ use bevy::math::DVec3;
 
 /// Lower bound kept on each aspect ratio a_i (eq. 4 allows 0 ≤ a_i ≤ 1; 0 collapses the shape).
 pub const MIN_ASPECT: f64 = 1e-3;
-/// Lower bound kept on the squareness exponents ε1, ε2 (ε → 0 is a box with infinite curvature).
+/// Lower bound the dynamics keep on the squareness exponents ε1, ε2 (ε → 0 is a box with infinite
+/// curvature). Below it eq. (4) crowds a flat face into a sliver of (u, v) at the pole — for ε1 =
+/// 0.05 the inner half of a flat cap lies within 10⁻⁶ rad of u = π/2 — and the data's points of
+/// influence cannot migrate onto it. A shape may hold an exponent down to [`LEAST_EPSILON`]: the
+/// squareness extension of a pure superquadric fit (`fit::extend_squareness`) sets one there, and
+/// the dynamics then keep it ([`SuperquadricParams::normalized_keeping`]).
 pub const MIN_EPSILON: f64 = 0.1;
+/// Least squareness exponent a shape may hold (scenes accept [`LEAST_EPSILON`, `MAX_EPSILON`]):
+/// below [`MIN_EPSILON`] only where it was set, never moved there by the dynamics.
+pub const LEAST_EPSILON: f64 = 0.01;
 /// Upper bound kept on the squareness exponents ε1, ε2 (ε > 2 gives concave, pinched shapes).
 pub const MAX_EPSILON: f64 = 2.0;
 
@@ -98,6 +106,18 @@ impl SuperquadricParams {
             a3: (axes.z / a).clamp(MIN_ASPECT, 1.0),
             e1: self.e1.clamp(MIN_EPSILON, MAX_EPSILON),
             e2: self.e2.clamp(MIN_EPSILON, MAX_EPSILON),
+        }
+    }
+
+    /// [`Self::normalized`] for a step from `previous`: an exponent that `previous` held below
+    /// [`MIN_EPSILON`] may stay down to where it was (not below [`LEAST_EPSILON`]), so that a step
+    /// neither pushes an exponent below [`MIN_EPSILON`] nor makes a shape set there jump to it.
+    pub fn normalized_keeping(&self, previous: &Self) -> Self {
+        let floor = |was: f64| was.clamp(LEAST_EPSILON, MIN_EPSILON);
+        Self {
+            e1: self.e1.clamp(floor(previous.e1), MAX_EPSILON),
+            e2: self.e2.clamp(floor(previous.e2), MAX_EPSILON),
+            ..self.normalized()
         }
     }
 }
@@ -401,5 +421,41 @@ mod tests {
         assert_eq!(n.a2, 1.0);
         assert_eq!(n.e1, MAX_EPSILON);
         assert_eq!(n.e2, MIN_EPSILON);
+    }
+
+    #[test]
+    fn a_step_keeps_an_exponent_set_below_the_dynamics_bound_and_pushes_none_there() {
+        let previous = SuperquadricParams {
+            e1: 0.02,
+            e2: 0.5,
+            ..Default::default()
+        };
+        // ε1 set at 0.02 may stay or fall back to 0.02, and rise; ε2 stops at MIN_EPSILON.
+        let stepped = |e1: f64, e2: f64| {
+            SuperquadricParams { e1, e2, ..previous }.normalized_keeping(&previous)
+        };
+        assert_eq!(stepped(0.02, 0.05).e1, 0.02);
+        assert_eq!(stepped(0.001, 0.05).e1, 0.02);
+        assert_eq!(stepped(0.06, 0.05).e1, 0.06);
+        assert_eq!(stepped(0.06, 0.05).e2, MIN_EPSILON);
+        assert_eq!(stepped(0.06, 2.5).e2, MAX_EPSILON);
+        // From a shape at or above the bound it is `normalized`.
+        let q = SuperquadricParams {
+            a: 2.0,
+            a1: 0.5,
+            e1: 0.03,
+            e2: 3.0,
+            ..Default::default()
+        };
+        assert_eq!(
+            q.normalized_keeping(&SuperquadricParams::default()),
+            q.normalized()
+        );
+        // Never below LEAST_EPSILON, whatever the previous shape held.
+        let below = SuperquadricParams {
+            e1: 0.001,
+            ..Default::default()
+        };
+        assert_eq!(below.normalized_keeping(&below).e1, LEAST_EPSILON);
     }
 }

@@ -4,7 +4,8 @@
 //! cross-section switch ([`FitOptions::switch_cross_section`]) runs the dual as one more entity,
 //! the refining stage ([`FitOptions::refine`]) runs on the chosen one, which goes back to its
 //! state before the stage when the refinement is not kept, and the similarity switch
-//! ([`FitOptions::similarity_switch`]) runs each candidate as one more entity — as `fit` does.
+//! ([`FitOptions::similarity_switch`]) runs each candidate as one more entity, and a pure
+//! superquadric ends with the squareness extension (`fit::extend_squareness`) — as `fit` does.
 
 use super::{
     DeformableSqPlugin, FemMesh, FitDriver, GlobalShape, LocalDofs, ModelSettings, RangeData,
@@ -13,9 +14,9 @@ use super::{
 use crate::model::dynamics::ModelState;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
-    Refinement, Stage, cross_section_dual, fit_residuals, global_stages, has_joint_stage,
-    initial_hypotheses, mean_distance, refine_check, refine_distances, refine_stalled,
-    similarity_candidates, similarity_share, validate_options, validate_points,
+    Refinement, Stage, cross_section_dual, extend_squareness, fit_residuals, global_stages,
+    has_joint_stage, initial_hypotheses, mean_distance, refine_check, refine_distances,
+    refine_stalled, similarity_candidates, similarity_share, validate_options, validate_points,
     weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
@@ -191,6 +192,24 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
             app.world_mut().despawn(e);
             e = other;
             initial = norm.pose_to_data(&tess, &candidate);
+        }
+    }
+    if !has_joint_stage(opts) && opts.refine {
+        // As in `fit`: a pure superquadric ends with the squareness extension.
+        let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
+        let range = app
+            .world()
+            .get::<RangeData>(e)
+            .ok_or(FitError::Degenerate)?;
+        let weights: Vec<f64> = (0..unit.len())
+            .map(|i| range.forces.relative_weight(i))
+            .collect();
+        if let Some(shape) = extend_squareness(&tess, &state, &unit, &weights) {
+            let mut global = app
+                .world_mut()
+                .get_mut::<GlobalShape>(e)
+                .ok_or(FitError::Degenerate)?;
+            (global.e1, global.e2) = (shape.e1, shape.e2);
         }
     }
     if has_joint_stage(opts) {
