@@ -663,9 +663,9 @@ pub const EXTENDED_EPSILONS: [f64; 4] = [0.05, 0.03, 0.02, LEAST_EPSILON];
 /// moved, `None` otherwise.
 ///
 /// EMS's noisy cylinder (`noisy_pointCloud_example_2`), whose robust fit came to rest at ε1 =
-/// 0.1, is the case: with ε1 = 0.02 its mean distance to the points falls from 0.01485 to 0.01469
-/// of the diagonal, EMS's own fit (ε1 = 0.01) lying 0.01473 from them (README "Side by side with
-/// EMS").
+/// 0.1, is the case: the extension takes ε1 to 0.01 and the mean distance of the points to the
+/// surface from 0.01485 to 0.01468 of the diagonal, EMS's own fit (ε1 = 0.01) lying 0.01473
+/// from them (README "Side by side with EMS").
 pub fn extend_squareness(
     tess: &Tessellation,
     state: &ModelState,
