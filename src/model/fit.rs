@@ -1151,9 +1151,7 @@ pub fn fit(
     }
     if opts.similarity_switch {
         // Every candidate is scored with the chosen fit's inlier probabilities.
-        let weights: Vec<f64> = (0..unit.len())
-            .map(|i| relax.range.relative_weight(i))
-            .collect();
+        let weights = relax.range.relative_weights();
         let weighted = |x: &[DVec3]| weighted_mean_distance(&tess, x, &unit, &weights);
         let candidates = similarity_candidates(&InitialPose::of(&relax.state));
         let share = similarity_share(opts.max_steps, other_steps + relax.steps, candidates.len());
@@ -1198,9 +1196,7 @@ pub fn fit(
         let budget = opts.max_steps.saturating_sub(other_steps);
         converged = relax.run(Stage::Joint, budget, &mut progress)?;
     } else if opts.refine {
-        let weights: Vec<f64> = (0..unit.len())
-            .map(|i| relax.range.relative_weight(i))
-            .collect();
+        let weights = relax.range.relative_weights();
         if let Some(shape) = extend_squareness(&tess, &relax.state, &unit, &weights) {
             relax.state.shape = shape;
         }

@@ -42,9 +42,7 @@ use super::dynamics::{DynamicsParams, FreeDofs, ModelState, NodalForces, StepErr
 use super::fem::{GridPowers, Tessellation};
 use super::frame::rotation_matrix;
 use super::linalg::cholesky_solve;
-use super::superquadric::{
-    LEAST_EPSILON, MAX_EPSILON, MIN_ASPECT, MIN_EPSILON, SuperquadricParams,
-};
+use super::superquadric::{MAX_EPSILON, MIN_ASPECT, SuperquadricParams, epsilon_floor};
 use bevy::math::{DMat3, DQuat, DVec3};
 
 /// Number of global velocity coordinates: ċ (3), Ω (3), Ȧ (3), ε̇ (2), q̇_T (4).
@@ -624,7 +622,7 @@ fn advance(state: &mut ModelState, v: &mut Velocity, h: f64) {
         state.shape.e2 + h * v.epsilon[1],
     ];
     // An exponent set below MIN_EPSILON may stay down there (`normalized_keeping`).
-    let floor = [state.shape.e1, state.shape.e2].map(|was| was.clamp(LEAST_EPSILON, MIN_EPSILON));
+    let floor = [state.shape.e1, state.shape.e2].map(epsilon_floor);
     let e: [f64; 2] = std::array::from_fn(|k| e[k].clamp(floor[k], MAX_EPSILON));
     for k in 0..2 {
         if e[k] == floor[k] || e[k] == MAX_EPSILON {

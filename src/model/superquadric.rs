@@ -113,13 +113,18 @@ impl SuperquadricParams {
     /// [`MIN_EPSILON`] may stay down to where it was (not below [`LEAST_EPSILON`]), so that a step
     /// neither pushes an exponent below [`MIN_EPSILON`] nor makes a shape set there jump to it.
     pub fn normalized_keeping(&self, previous: &Self) -> Self {
-        let floor = |was: f64| was.clamp(LEAST_EPSILON, MIN_EPSILON);
         Self {
-            e1: self.e1.clamp(floor(previous.e1), MAX_EPSILON),
-            e2: self.e2.clamp(floor(previous.e2), MAX_EPSILON),
+            e1: self.e1.clamp(epsilon_floor(previous.e1), MAX_EPSILON),
+            e2: self.e2.clamp(epsilon_floor(previous.e2), MAX_EPSILON),
             ..self.normalized()
         }
     }
+}
+
+/// The least value a step may give an exponent that was `previous`: [`MIN_EPSILON`], or where it
+/// was if that is below (not below [`LEAST_EPSILON`]).
+pub fn epsilon_floor(previous: f64) -> f64 {
+    previous.clamp(LEAST_EPSILON, MIN_EPSILON)
 }
 
 /// Signed power sgn(c)|c|^ε, the building block C_w^ε = spow(cos w, ε), S_w^ε = spow(sin w, ε).

@@ -141,15 +141,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     if opts.similarity_switch {
         // As in `fit`: each candidate through the global and refining stages, scored with the
         // chosen fit's inlier probabilities.
-        let weights: Vec<f64> = {
-            let range = app
-                .world()
-                .get::<RangeData>(e)
-                .ok_or(FitError::Degenerate)?;
-            (0..unit.len())
-                .map(|i| range.forces.relative_weight(i))
-                .collect()
-        };
+        let weights = weights_of(&app, e)?;
         let weighted = |app: &App, e: Entity| -> Result<f64, FitError> {
             let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
             let mut x = Vec::new();
@@ -197,13 +189,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     if !has_joint_stage(opts) && opts.refine {
         // As in `fit`: a pure superquadric ends with the squareness extension.
         let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
-        let range = app
-            .world()
-            .get::<RangeData>(e)
-            .ok_or(FitError::Degenerate)?;
-        let weights: Vec<f64> = (0..unit.len())
-            .map(|i| range.forces.relative_weight(i))
-            .collect();
+        let weights = weights_of(&app, e)?;
         if let Some(shape) = extend_squareness(&tess, &state, &unit, &weights) {
             let mut global = app
                 .world_mut()
@@ -239,6 +225,15 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         state,
         tess: (*tess).clone(),
     })
+}
+
+/// The inlier weights of model `e`'s points ([`RangeForces::relative_weights`]).
+fn weights_of(app: &App, e: Entity) -> Result<Vec<f64>, FitError> {
+    let range = app
+        .world()
+        .get::<RangeData>(e)
+        .ok_or(FitError::Degenerate)?;
+    Ok(range.forces.relative_weights())
 }
 
 fn steps_of(app: &App, e: Entity) -> u64 {

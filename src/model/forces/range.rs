@@ -300,6 +300,13 @@ impl RangeForces {
         self.inlier_scale().map_or(1.0, |(p, scale)| p[i] * scale)
     }
 
+    /// [`Self::relative_weight`] of every point, in the points' order.
+    pub fn relative_weights(&self) -> Vec<f64> {
+        (0..self.points.len())
+            .map(|i| self.relative_weight(i))
+            .collect()
+    }
+
     /// The inlier probabilities and m / Σ p, when robust weights are in force.
     fn inlier_scale(&self) -> Option<(&[f64], f64)> {
         match &self.robust {
