@@ -11,7 +11,9 @@ use bevy_deformable_sq::model::dynamics::{
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{FitOptions, fit, fit_residuals, residuals};
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
-use bevy_deformable_sq::model::forces::range::{InfluenceMode, RangeForces, nearest_indices};
+use bevy_deformable_sq::model::forces::range::{
+    InfluenceMode, QueryOrder, RangeForces, nearest_indices,
+};
 use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment};
 use bevy_deformable_sq::model::inertia::{
     InertiaParams, InertiaWorkspace, Velocity, step as inertia_step,
@@ -109,10 +111,20 @@ fn reassignment(c: &mut Criterion) {
         let mut x = Vec::new();
         state.node_positions(&tess, &mut x);
         let points = superquadric_cloud(&target(), DVec3::ZERO, DQuat::IDENTITY, m, 0.02, 3);
+        let name = format!("{m}p_{}n", tess.node_count());
+        // As a fit reassigns: its points, fixed, searched in the order `RangeForces` keeps.
+        let order = QueryOrder::new(&points);
+        g.bench_with_input(BenchmarkId::new("points_vs_nodes", &name), &(), |b, _| {
+            b.iter(|| black_box(order.nearest_indices(&x)))
+        });
+        // The same search in the points' given (random) order, and the one-time ordering.
+        g.bench_with_input(BenchmarkId::new("unordered", &name), &(), |b, _| {
+            b.iter(|| black_box(nearest_indices(&x, &points)))
+        });
         g.bench_with_input(
-            BenchmarkId::new("points_vs_nodes", format!("{m}p_{}n", tess.node_count())),
+            BenchmarkId::new("query_order", format!("{m}p")),
             &(),
-            |b, _| b.iter(|| black_box(nearest_indices(&x, &points))),
+            |b, _| b.iter(|| black_box(QueryOrder::new(&points))),
         );
     }
     g.finish();

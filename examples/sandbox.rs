@@ -779,7 +779,7 @@ fn track_residual(
     if scratch.node_positions().len() != tess.node_count() {
         return;
     }
-    let r = residuals(tess, scratch.node_positions(), &range.forces.points);
+    let r = residuals(tess, scratch.node_positions(), range.forces.points());
     sandbox.residual.push_back(r.rms as f32);
     if sandbox.residual.len() > 300 {
         sandbox.residual.pop_front();

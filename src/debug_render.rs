@@ -66,7 +66,7 @@ pub fn draw_debug(
             continue;
         }
         if let Some(range) = range {
-            for (i, r) in range.forces.points.iter().enumerate() {
+            for (i, r) in range.forces.points().iter().enumerate() {
                 let r = r.as_vec3();
                 if config.points {
                     gizmos.cross(

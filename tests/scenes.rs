@@ -691,7 +691,7 @@ fn a_scene_parts_outlier_fraction_gives_it_robust_weights_through_the_plugin() {
     assert_eq!(robust.outlier_ratio, 0.2);
     assert_eq!(
         robust.inlier.len(),
-        range.points.len(),
+        range.points().len(),
         "weighed at the first reassignment"
     );
 }

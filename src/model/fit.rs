@@ -97,7 +97,7 @@ pub fn refine_stalled(weighted: f64, previous: Option<f64>) -> bool {
 /// mean distance of `range`'s points to the surface through `node_x` ([`refine_check`]) and the
 /// same weighted by each point's [`RangeForces::relative_weight`] ([`refine_stalled`]).
 pub fn refine_distances(tess: &Tessellation, node_x: &[DVec3], range: &RangeForces) -> (f64, f64) {
-    let d = point_distances(tess, node_x, &range.points);
+    let d = point_distances(tess, node_x, range.points());
     let mean = d.iter().sum::<f64>() / d.len().max(1) as f64;
     let (mut total, mut weighted) = (0.0, 0.0);
     for (i, d) in d.iter().enumerate() {
@@ -975,7 +975,7 @@ impl<'a> Relaxation<'a> {
             }
             let (range, x) = (&mut self.range, &self.x);
             let mut reassigned = false;
-            let done = clock.after_step(motion, self.opts, range.points.len(), || {
+            let done = clock.after_step(motion, self.opts, range.points().len(), || {
                 reassigned = true;
                 (range.reassign(tess, x), range.signature())
             });
@@ -1019,7 +1019,7 @@ impl<'a> Relaxation<'a> {
         let at_rest = self.run(Stage::Refine, budget, progress)?;
         let gave_up = self.gave_up;
         (self.refine_least, self.refine_previous, self.gave_up) = (None, None, false);
-        let after = mean_distance(self.tess, &self.x, &self.range.points);
+        let after = mean_distance(self.tess, &self.x, self.range.points());
         let kept = at_rest && after <= score;
         let steps = self.steps - before.steps;
         if !kept {
@@ -1108,7 +1108,7 @@ pub fn fit(
         for stage in global_stages(opts) {
             converged &= relax.run(stage, share, &mut |p: &FitProgress| progress(p))?;
         }
-        let score = mean_distance(&tess, &relax.x, &relax.range.points);
+        let score = mean_distance(&tess, &relax.x, relax.range.points());
         Ok::<_, FitError>((score, relax, converged))
     };
     let results = run_parallel(&candidates, run, &mut progress);
@@ -1132,7 +1132,7 @@ pub fn fit(
         let budget = opts.max_steps.saturating_sub(steps_used);
         let other_converged = other.run(Stage::Global, budget, &mut progress)?;
         steps_used += other.steps;
-        let other_score = mean_distance(&tess, &other.x, &other.range.points);
+        let other_score = mean_distance(&tess, &other.x, other.range.points());
         if other_score < score {
             (score, relax, converged) = (other_score, other, other_converged);
             initial = norm.pose_to_data(&tess, &dual);
@@ -1161,7 +1161,7 @@ pub fn fit(
             let converged = other.run(Stage::Global, share, &mut |p: &FitProgress| progress(p))?;
             let mut undone = 0;
             if opts.refine {
-                let score = mean_distance(&tess, &other.x, &other.range.points);
+                let score = mean_distance(&tess, &other.x, other.range.points());
                 let stage = other.refine(score, share, &mut |p: &FitProgress| progress(p))?;
                 if !stage.kept {
                     undone = stage.steps;

@@ -170,7 +170,7 @@ pub fn reassign(
                     control
                         .steps
                         .is_multiple_of(settings.reassign_every.max(1) as u64)
-                        || range.forces.influence.len() != range.forces.points.len()
+                        || range.forces.influence.len() != range.forces.points().len()
                 }
             };
             if !due {
@@ -396,7 +396,7 @@ pub fn drive_fits(
             let motion = max_motion(&scratch.node_x, &scratch.x_new);
             std::mem::swap(&mut scratch.node_x, &mut scratch.x_new);
             let mut reassigned = false;
-            let points = range.forces.points.len();
+            let points = range.forces.points().len();
             let ended = clock.after_step(motion, &driver.options, points, || {
                 reassigned = true;
                 let changed = range.forces.reassign(tess, &scratch.node_x);
