@@ -547,13 +547,13 @@ impl Tessellation {
     /// Wraps any (u, v) onto the domain u ∈ [−π/2, π/2], v ∈ [−π, π): a u past a pole comes back
     /// on the other side of it, half a turn round in v.
     pub fn wrap(u: f64, v: f64) -> (f64, f64) {
-        let mut u = (u + FRAC_PI_2).rem_euclid(TAU) - FRAC_PI_2; // u ∈ [−π/2, 3π/2)
+        let mut u = period(u + FRAC_PI_2) - FRAC_PI_2; // u ∈ [−π/2, 3π/2)
         let mut v = v;
         if u > FRAC_PI_2 {
             u = PI - u;
             v += PI;
         }
-        (u, (v + PI).rem_euclid(TAU) - PI)
+        (u, period(v + PI) - PI)
     }
 
     /// Locates material point (u, v) in its element and returns the shape functions there
@@ -566,7 +566,9 @@ impl Tessellation {
         let sv = (v + PI) / self.h_v;
         let j = (sv.floor() as usize).min(k - 1);
         let s = (sv - j as f64).clamp(0.0, 1.0);
-        let ring = |i: usize, j: usize| (1 + i * k + (j % k)) as u32;
+        // Longitude j + 1 wraps to 0 at the seam (j < k): no integer division on this path.
+        let next = if j + 1 == k { 0 } else { j + 1 };
+        let ring = |i: usize, j: usize| (1 + i * k + j) as u32;
         let su = (u + FRAC_PI_2) / self.h_u - 1.0; // ring coordinate: ring i at su = i
         if su < 0.0 || su >= (k - 1) as f64 {
             let (pole, i, t, sign) = if su < 0.0 {
@@ -577,7 +579,7 @@ impl Tessellation {
             let t = t.clamp(0.0, 1.0);
             let (hu, hv) = (sign / self.h_u, 1.0 / self.h_v);
             return ElementPoint {
-                nodes: [pole, ring(i, j), ring(i, j + 1), ring(i, j + 1)],
+                nodes: [pole, ring(i, j), ring(i, next), ring(i, next)],
                 weights: [t, (1.0 - t) * (1.0 - s), (1.0 - t) * s, 0.0],
                 du: [hu, -hu * (1.0 - s), -hu * s, 0.0],
                 dv: [0.0, -hv * (1.0 - t), hv * (1.0 - t), 0.0],
@@ -587,12 +589,7 @@ impl Tessellation {
         let r = su - i as f64;
         let (hu, hv) = (1.0 / self.h_u, 1.0 / self.h_v);
         ElementPoint {
-            nodes: [
-                ring(i, j),
-                ring(i + 1, j),
-                ring(i + 1, j + 1),
-                ring(i, j + 1),
-            ],
+            nodes: [ring(i, j), ring(i + 1, j), ring(i + 1, next), ring(i, next)],
             weights: [(1.0 - r) * (1.0 - s), r * (1.0 - s), r * s, (1.0 - r) * s],
             du: [-hu * (1.0 - s), hu * (1.0 - s), hu * s, -hu * s],
             dv: [-hv * (1.0 - r), -hv * r, hv * r, hv * (1.0 - r)],
@@ -650,6 +647,17 @@ fn add_ring_stencil(w: [f64; 3], x: &[DVec3], out: &mut [DVec3]) {
         out[j] += w[0] * x[j - 1] + w[1] * x[j] + w[2] * x[j + 1];
     }
     out[k - 1] += w[0] * x[k - 2] + w[1] * x[k - 1] + w[2] * x[0];
+}
+
+/// `x` reduced to [0, 2π): `x.rem_euclid(2π)`, bit for bit, without the `fmod` call when `x` is
+/// already there (a point of influence almost always is: it moves less than an element a step).
+#[inline]
+fn period(x: f64) -> f64 {
+    if (0.0..TAU).contains(&x) {
+        x
+    } else {
+        x.rem_euclid(TAU)
+    }
 }
 
 #[cfg(test)]
@@ -945,6 +953,27 @@ mod tests {
         let p = t.locate(FRAC_PI_2, 1.0);
         assert_eq!(p.nodes[0] as usize, t.north_pole());
         assert!((p.weights[0] - 1.0).abs() < 1e-12);
+    }
+
+    /// The wrap's shortcut is `rem_euclid` to the bit: inside [0, 2π), at its ends (±0, 2π and
+    /// the float below it), outside in both directions, and for non-finite input.
+    #[test]
+    fn period_is_rem_euclid_bit_for_bit() {
+        let below = f64::from_bits(TAU.to_bits() - 1);
+        let mut xs = vec![
+            0.0, -0.0, TAU, below, -TAU, -below, 1e-300, -1e-300, 1e300, -1e300,
+        ];
+        xs.extend((-400..400).map(|i| i as f64 * 0.0371 + 0.5));
+        for x in xs {
+            assert_eq!(
+                period(x).to_bits(),
+                x.rem_euclid(TAU).to_bits(),
+                "x = {x:e}"
+            );
+        }
+        for x in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            assert!(period(x).is_nan() && x.rem_euclid(TAU).is_nan());
+        }
     }
 
     #[test]
