@@ -15,9 +15,9 @@ use crate::model::dynamics::ModelState;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
     Refinement, Stage, cross_section_dual, extend_squareness, fit_residuals, global_stages,
-    has_joint_stage, initial_hypotheses, mean_distance, refine_check, refine_distances,
-    refine_stalled, similarity_candidates, similarity_share, validate_options, validate_points,
-    weighted_mean_distance,
+    has_joint_stage, initial_hypotheses, mean_distance, refine_candidate, refine_check,
+    refine_distances, refine_stalled, similarity_candidates, similarity_share, validate_options,
+    validate_points, weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
 use crate::model::init::InitialPose;
@@ -132,7 +132,12 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         }
     }
     let mut refinement = None;
+    // As in `fit`: the chosen model at the end of its global stage, for the similarity candidates.
+    let mut placed = None;
     if opts.refine {
+        if opts.similarity_switch {
+            placed = Some(state_of(app.world(), e).ok_or(FitError::Degenerate)?);
+        }
         let cap = (opts.max_steps as u64).saturating_sub(other_steps);
         let (stage, undone_steps) = refine(&mut app, e, cap, score, &tess, &unit)?;
         other_steps += undone_steps;
@@ -142,12 +147,17 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         // As in `fit`: each candidate through the global and refining stages, scored with the
         // chosen fit's inlier probabilities.
         let weights = weights_of(&app, e)?;
-        let weighted = |app: &App, e: Entity| -> Result<f64, FitError> {
-            let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
+        let weighted_at = |state: &ModelState| {
             let mut x = Vec::new();
             state.node_positions(&tess, &mut x);
-            Ok(weighted_mean_distance(&tess, &x, &unit, &weights))
+            weighted_mean_distance(&tess, &x, &unit, &weights)
         };
+        let weighted = |app: &App, e: Entity| -> Result<f64, FitError> {
+            Ok(weighted_at(
+                &state_of(app.world(), e).ok_or(FitError::Degenerate)?,
+            ))
+        };
+        let placed = placed.as_ref().map(weighted_at);
         let mut best_score = weighted(&app, e)?;
         let mut best: Option<(Entity, InitialPose)> = None;
         let current = InitialPose::of(&state_of(app.world(), e).ok_or(FitError::Degenerate)?);
@@ -163,7 +173,11 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
             let driver = FitDriver::new(*opts, [Stage::Global], cap);
             let other = spawn_model(&mut app, opts, &unit, &candidate, driver);
             run_until_done(&mut app, max_updates)?;
-            if opts.refine {
+            let refined = match placed {
+                Some(chosen) => refine_candidate(weighted(&app, other)?, chosen),
+                None => true,
+            };
+            if opts.refine && refined {
                 let score = distance_of(&app, other, &tess, &unit)?;
                 other_steps += refine(&mut app, other, cap, score, &tess, &unit)?.1;
             }
