@@ -186,8 +186,9 @@ pub struct FitOptions {
     pub switch_cross_section: bool,
     /// After the refining stage, try the fit's similarity candidates ([`similarity_candidates`]:
     /// the other two axes as the model's z with the exponents swapped, and the cross-section dual
-    /// about each axis whose two perpendicular semi-axes are alike), each through the global and
-    /// refining stages, and keep the one closest to the points — weighted by the chosen fit's
+    /// about each axis whose two perpendicular semi-axes are alike), each through the global
+    /// stage and, unless it placed much worse than the fit ([`SIMILARITY_REFINE_MARGIN`]), the
+    /// refining stage, and keep the one closest to the points — weighted by the chosen fit's
     /// inlier probabilities — if it is closer than the fit (EMS's similarity switching, Liu et
     /// al. 2022; beyond the paper).
     pub similarity_switch: bool,
