@@ -130,6 +130,39 @@ fn reassignment(c: &mut Criterion) {
     g.finish();
 }
 
+/// The refining stage's migration ([`RangeForces::migrate`] on the continuous superquadric,
+/// `fit::REFINE_RATE`): every point of influence evaluated on x(u) with its tangents, moved the
+/// Gauss–Newton way and evaluated at the trial. The model alternates between two shapes a few
+/// per cent apart, so that every iteration's two migrations move the points as a fit's steps do
+/// (a model at rest would leave them at their feet, the cheap path).
+fn migration(c: &mut Criterion) {
+    let mut g = c.benchmark_group("migration");
+    g.sample_size(20);
+    for m in [1000, 6000] {
+        let (tess, state, mut range) = attached(31, m);
+        range.mode = InfluenceMode::Migrating { rate: 1.0 };
+        let mut other = state.clone();
+        other.shape.a *= 1.03;
+        other.shape.e1 += 0.02;
+        other.translation.y += 0.01;
+        let (mut xa, mut xb) = (Vec::new(), Vec::new());
+        state.node_positions(&tess, &mut xa);
+        other.node_positions(&tess, &mut xb);
+        let (sa, sb) = (state.surface(), other.surface());
+        g.bench_with_input(
+            BenchmarkId::new("surface_two_steps", format!("{m}p_{}n", tess.node_count())),
+            &(),
+            |b, _| {
+                b.iter(|| {
+                    range.migrate(&tess, &xa, Some(&sa));
+                    range.migrate(&tess, &xb, Some(&sb));
+                })
+            },
+        );
+    }
+    g.finish();
+}
+
 /// What measuring a pure superquadric's residuals costs a fit (`fit::fit_residuals`: a k = 151
 /// tessellation built and searched), against its 963-node mesh.
 fn residuals_of_a_fit(c: &mut Criterion) {
@@ -357,6 +390,7 @@ criterion_group!(
     euler_step,
     beyond_the_paper_step,
     reassignment,
+    migration,
     app_step,
     app_step_image,
     memory_per_node,
