@@ -833,25 +833,32 @@ mod tests {
             .collect()
     }
 
+    /// The nodes of a squarish, turned and shifted superquadric on a k-tessellation: a search
+    /// target with flat faces and near-ties.
+    fn squarish_nodes(k: usize) -> Vec<DVec3> {
+        let tess = Tessellation::new(k);
+        let state = ModelState::new(
+            &tess,
+            DVec3::new(0.1, 0.0, -0.2),
+            DQuat::from_rotation_y(0.4),
+            SuperquadricParams {
+                a: 1.0,
+                a1: 1.0,
+                a2: 0.7,
+                a3: 0.5,
+                e1: 0.3,
+                e2: 0.5,
+            },
+        );
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        x
+    }
+
     #[test]
     fn kd_tree_assignment_equals_brute_force() {
         for k in [5, 20, 41] {
-            let tess = Tessellation::new(k);
-            let state = ModelState::new(
-                &tess,
-                DVec3::new(0.1, 0.0, -0.2),
-                DQuat::from_rotation_y(0.4),
-                SuperquadricParams {
-                    a: 1.0,
-                    a1: 1.0,
-                    a2: 0.7,
-                    a3: 0.5,
-                    e1: 0.3,
-                    e2: 0.5,
-                },
-            );
-            let mut x = Vec::new();
-            state.node_positions(&tess, &mut x);
+            let x = squarish_nodes(k);
             let pts = pseudo_random(3000, k as u64);
             let fast = nearest_indices(&x, &pts);
             let brute = nearest_indices_brute(&x, &pts);
@@ -880,22 +887,7 @@ mod tests {
     /// one point, all points equal, non-finite coordinates, no nodes) give the same answers too.
     #[test]
     fn query_order_gives_the_unordered_answers() {
-        let tess = Tessellation::new(20);
-        let state = ModelState::new(
-            &tess,
-            DVec3::new(0.1, 0.0, -0.2),
-            DQuat::from_rotation_y(0.4),
-            SuperquadricParams {
-                a: 1.0,
-                a1: 1.0,
-                a2: 0.7,
-                a3: 0.5,
-                e1: 0.3,
-                e2: 0.5,
-            },
-        );
-        let mut x = Vec::new();
-        state.node_positions(&tess, &mut x);
+        let x = squarish_nodes(20);
         let pts = pseudo_random(5000, 7);
         let order = QueryOrder::new(&pts);
         assert_eq!(order.len(), pts.len());
