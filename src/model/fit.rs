@@ -1288,32 +1288,52 @@ pub const RESIDUAL_CANDIDATE_NODES: usize = 12;
 /// triangles are not much longer than the node spacing.
 pub fn point_distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) -> Vec<f64> {
     let tris = tess.triangles();
-    let mut incident: Vec<Vec<u32>> = vec![Vec::new(); node_x.len()];
+    // The triangles round each node, as one list with offsets (node n's are
+    // `incident[first[n]..first[n + 1]]`).
+    let mut first = vec![0u32; node_x.len() + 1];
+    for &n in tris.iter().flatten() {
+        if let Some(count) = first.get_mut(n as usize + 1) {
+            *count += 1;
+        }
+    }
+    for n in 0..node_x.len() {
+        first[n + 1] += first[n];
+    }
+    let mut fill = first.clone();
+    let mut incident = vec![0u32; first[node_x.len()] as usize];
     for (t, tri) in tris.iter().enumerate() {
         for &n in tri {
-            incident[n as usize].push(t as u32);
+            if let Some(at) = fill.get_mut(n as usize) {
+                incident[*at as usize] = t as u32;
+                *at += 1;
+            }
         }
     }
     let entries: Vec<[f64; 3]> = node_x.iter().map(|p| p.to_array()).collect();
     let tree = ImmutableKdTree::<f64, 3>::new_from_slice(&entries).ok();
     let k = NonZero::new(RESIDUAL_CANDIDATE_NODES.min(node_x.len()).max(1))
         .unwrap_or(NonZero::<usize>::MIN);
+    // A triangle round several candidate nodes is measured once per point: `seen[t]` holds the
+    // last point (plus one) that measured it.
+    let mut seen = vec![0u32; tris.len()];
+    let all_nodes: Vec<u32> = if tree.is_none() {
+        (0..node_x.len() as u32).collect()
+    } else {
+        Vec::new()
+    };
     points
         .iter()
-        .map(|p| {
-            let candidates: Vec<u32> = match &tree {
-                Some(tree) => tree
-                    .query(&p.to_array())
-                    .nearest_n::<SquaredEuclidean<f64>>(k)
-                    .execute()
-                    .iter()
-                    .map(|r| r.item)
-                    .collect(),
-                None => (0..node_x.len() as u32).collect(),
-            };
+        .enumerate()
+        .map(|(i, p)| {
+            let stamp = i as u32 + 1;
             let mut best = f64::INFINITY;
-            for n in candidates {
-                for &t in &incident[n as usize] {
+            let mut measure = |n: u32| {
+                let n = n as usize;
+                for &t in &incident[first[n] as usize..first[n + 1] as usize] {
+                    if seen[t as usize] == stamp {
+                        continue;
+                    }
+                    seen[t as usize] = stamp;
                     let [a, b, c] = tris[t as usize];
                     let q = closest_point_on_triangle(
                         *p,
@@ -1323,6 +1343,15 @@ pub fn point_distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) 
                     );
                     best = best.min(q.distance_squared(*p));
                 }
+            };
+            match &tree {
+                Some(tree) => tree
+                    .query(&p.to_array())
+                    .nearest_n::<SquaredEuclidean<f64>>(k)
+                    .execute()
+                    .iter()
+                    .for_each(|r| measure(r.item)),
+                None => all_nodes.iter().for_each(|&n| measure(n)),
             }
             best.sqrt()
         })
@@ -1492,6 +1521,53 @@ mod tests {
 
     /// A candidate is refined up to the margin times the chosen fit's placing distance and
     /// not past it.
+    /// Near a surface, the search round the nearest nodes finds the distance to the closest of
+    /// all triangles, bit for bit; with one node, or none, it still answers.
+    #[test]
+    fn point_distances_equal_the_closest_of_all_triangles_near_the_surface() {
+        let tess = Tessellation::new(9);
+        let state = ModelState::new(
+            &tess,
+            DVec3::new(0.2, -0.1, 0.3),
+            DQuat::from_rotation_x(0.7),
+            SuperquadricParams {
+                a: 1.0,
+                a1: 1.0,
+                a2: 0.6,
+                a3: 0.8,
+                e1: 0.4,
+                e2: 1.5,
+            },
+        );
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        // Off every node, a little in and out along a fixed skew direction, and off the
+        // midpoints of edges.
+        let skew = DVec3::new(0.03, -0.02, 0.025);
+        let mut points: Vec<DVec3> = x.iter().flat_map(|p| [*p + skew, *p - skew]).collect();
+        points.extend(
+            tess.triangles()
+                .iter()
+                .map(|&[a, b, _]| 0.5 * (x[a as usize] + x[b as usize]) + 0.5 * skew),
+        );
+        let brute: Vec<f64> = points
+            .iter()
+            .map(|p| {
+                tess.triangles()
+                    .iter()
+                    .map(|&[a, b, c]| {
+                        let (a, b, c) = (x[a as usize], x[b as usize], x[c as usize]);
+                        closest_point_on_triangle(*p, a, b, c).distance_squared(*p)
+                    })
+                    .fold(f64::INFINITY, f64::min)
+                    .sqrt()
+            })
+            .collect();
+        assert_eq!(point_distances(&tess, &x, &points), brute);
+        assert!(brute.iter().any(|&d| d > 0.01));
+        assert!(point_distances(&tess, &x, &[]).is_empty());
+    }
+
     #[test]
     fn similarity_candidates_refine_within_the_margin() {
         let chosen = 0.02;
