@@ -1531,12 +1531,11 @@ mod tests {
             DVec3::new(0.2, -0.1, 0.3),
             DQuat::from_rotation_x(0.7),
             SuperquadricParams {
-                a: 1.0,
-                a1: 1.0,
                 a2: 0.6,
                 a3: 0.8,
                 e1: 0.4,
                 e2: 1.5,
+                ..Default::default()
             },
         );
         let mut x = Vec::new();
