@@ -94,8 +94,8 @@ pub const REFINE_MIN_PROGRESS: f64 = 1e-3;
 /// chosen fit. On the eight shipped clouds and the 20 ground-truth clouds (`cargo run --release
 /// --example ground_truth`) the candidates that won did so from ratios of 0.39 to 1.89, and
 /// those that lost reached 4.5; at 2.5 the fits and the ground-truth table are what refining
-/// every candidate gives, and `partial_pointCloud_example_2` and `_3` skip refinements that
-/// took 40 % of their steps (BENCHMARKS.md, log entry 15).
+/// every candidate gives, and EMS's `partial_pointCloud_example_1`, `_2` and `_3` skip
+/// refinements that took 25 %, 31 % and 40 % of their steps (BENCHMARKS.md, log entry 16).
 pub const SIMILARITY_REFINE_MARGIN: f64 = 2.5;
 
 /// Whether a similarity candidate whose global stage ended `candidate` from the points is

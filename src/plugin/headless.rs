@@ -144,8 +144,8 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         refinement = Some(stage);
     }
     if opts.similarity_switch {
-        // As in `fit`: each candidate through the global and refining stages, scored with the
-        // chosen fit's inlier probabilities.
+        // As in `fit`: each candidate through the global stage and, within the margin, the
+        // refining stage, scored with the chosen fit's inlier probabilities.
         let weights = weights_of(&app, e)?;
         let weighted_at = |state: &ModelState| {
             let mut x = Vec::new();

@@ -10,10 +10,11 @@
 //! r, found again every N steps. The paper did that by brute force in O(mn); [`nearest_indices`]
 //! uses a k-d tree (kiddo) in O((m + n) log n) and gives the same assignment as
 //! [`nearest_indices_brute`] (tested); [`RangeForces`] searches its points in a spatial order
-//! fixed once ([`QueryOrder`]), which gives the same answers faster. [`InfluenceMode::Migrating`] is the paper's alternative
-//! (Fig. 3): each point of influence slides over the surface by the tangential components of its
-//! force until they vanish, at the foot of the perpendicular from r; a reassignment then only
-//! replaces it when the nearest node is closer. Given the model's continuous surface
+//! fixed once ([`QueryOrder`]), which gives the same answers faster.
+//! [`InfluenceMode::Migrating`] is the paper's alternative (Fig. 3): each point of influence
+//! slides over the surface by the tangential components of its force until they vanish, at the
+//! foot of the perpendicular from r; a reassignment then only replaces it when the nearest node
+//! is closer. Given the model's continuous surface
 //! ([`ModelSurface`], the paper's x(u)), the points slide over it with its own tangents and a
 //! whole 2×2 Gauss–Newton move, not over the mesh's triangles, whose chords would bias a fit by
 //! up to h²κ/8 ([`RangeForces::migrate`]).
@@ -252,9 +253,10 @@ pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
 /// [`nearest_indices`]'s to the bit (each query is independent of the others; tested); only the
 /// time changes. A fit's data points never change while its nodes move, so [`RangeForces`]
 /// orders its points once and searches in that order at every reassignment.
-/// Measured (`cargo bench --bench kernels -- reassignment`, BENCHMARKS.md): 100 000 points against
-/// 19 883 nodes about 18 % faster than in random order, for a one-time sort of about a tenth of
-/// one search.
+/// Measured (`cargo bench --bench kernels -- reassignment`, BENCHMARKS.md log entry 15): 100 000
+/// points against 19 883 nodes searched in 0.74–0.78 of the time they take in random order, for
+/// a one-time ordering that costs about a sixth of one search; at 1000 points against 963 nodes
+/// no difference.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct QueryOrder {
     /// `order[j]`: the index among the given points of the j-th point in query order.
@@ -264,8 +266,8 @@ pub struct QueryOrder {
 }
 
 impl QueryOrder {
-    /// Orders `points`. Non-finite coordinates are allowed: such points go first and are
-    /// searched like any other.
+    /// Orders `points`. Non-finite coordinates are allowed: such points take the first or the
+    /// last cell of the grid and are searched like any other.
     pub fn new(points: &[DVec3]) -> Self {
         let finite = points.iter().filter(|p| p.is_finite());
         let (lo, hi) = finite.fold(
