@@ -254,9 +254,9 @@ pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
 /// time changes. A fit's data points never change while its nodes move, so [`RangeForces`]
 /// orders its points once and searches in that order at every reassignment.
 /// Measured (`cargo bench --bench kernels -- reassignment`, BENCHMARKS.md log entry 15): 100 000
-/// points against 19 883 nodes searched in 0.74–0.78 of the time they take in random order, for
-/// a one-time ordering that costs about a sixth of one search; at 1000 points against 963 nodes
-/// no difference.
+/// points against 19 883 nodes searched in 0.74–0.98 of the time they take in random order
+/// (medians of interleaved runs 0.86–0.87), for a one-time ordering that costs about a sixth of
+/// one search; at 1000 points against 963 nodes no difference.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct QueryOrder {
     /// `order[j]`: the index among the given points of the j-th point in query order.
