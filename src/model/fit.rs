@@ -1186,25 +1186,27 @@ pub fn fit(
             let mut other = Relaxation::new(&tess, opts, &unit, candidate);
             let converged = other.run(Stage::Global, share, &mut |p: &FitProgress| progress(p))?;
             let mut undone = 0;
-            if opts.refine
-                && placed.is_none_or(|chosen| refine_candidate(weighted(&other.x), chosen))
-            {
-                let score = mean_distance(&tess, &other.x, other.range.points());
-                let stage = other.refine(score, share, &mut |p: &FitProgress| progress(p))?;
-                if !stage.kept {
+            // The candidate's score, on its worker: after the global stage, and again only if a
+            // kept refinement moved it.
+            let mut score = weighted(&other.x);
+            if opts.refine && placed.is_none_or(|chosen| refine_candidate(score, chosen)) {
+                let before = mean_distance(&tess, &other.x, other.range.points());
+                let stage = other.refine(before, share, &mut |p: &FitProgress| progress(p))?;
+                if stage.kept {
+                    score = weighted(&other.x);
+                } else {
                     undone = stage.steps;
                 }
             }
-            Ok::<_, FitError>((other, converged, undone))
+            Ok::<_, FitError>((other, converged, undone, score))
         };
         let runs = run_parallel(&candidates, run, &mut progress);
         let mut best_score = weighted(&relax.x);
         let mut best: Option<(Relaxation, bool, InitialPose)> = None;
         // In the candidates' order, so that ties and the outcome do not depend on scheduling.
         for (result, candidate) in runs.into_iter().zip(candidates) {
-            let (other, other_converged, undone) = result?;
+            let (other, other_converged, undone, other_score) = result?;
             other_steps += undone;
-            let other_score = weighted(&other.x);
             if other_score < best_score {
                 best_score = other_score;
                 if let Some((old, _, _)) = best.replace((other, other_converged, candidate)) {

@@ -173,15 +173,16 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
             let driver = FitDriver::new(*opts, [Stage::Global], cap);
             let other = spawn_model(&mut app, opts, &unit, &candidate, driver);
             run_until_done(&mut app, max_updates)?;
-            let refined = match placed {
-                Some(chosen) => refine_candidate(weighted(&app, other)?, chosen),
-                None => true,
-            };
-            if opts.refine && refined {
-                let score = distance_of(&app, other, &tess, &unit)?;
-                other_steps += refine(&mut app, other, cap, score, &tess, &unit)?.1;
+            // As in `fit`: scored after the global stage, and again only after a kept refinement.
+            let mut other_score = weighted(&app, other)?;
+            if opts.refine && placed.is_none_or(|chosen| refine_candidate(other_score, chosen)) {
+                let before = distance_of(&app, other, &tess, &unit)?;
+                let (stage, undone) = refine(&mut app, other, cap, before, &tess, &unit)?;
+                other_steps += undone;
+                if stage.kept {
+                    other_score = weighted(&app, other)?;
+                }
             }
-            let other_score = weighted(&app, other)?;
             if other_score < best_score {
                 best_score = other_score;
                 if let Some((old, _)) = best.replace((other, candidate)) {
