@@ -311,25 +311,9 @@ impl QueryOrder {
     /// For every ordered point, in the order the points were given, the index of the nearest
     /// of `nodes`: [`nearest_indices`]`(nodes, points)`, searched in query order.
     pub fn nearest_indices(&self, nodes: &[DVec3]) -> Vec<u32> {
-        let entries: Vec<[f64; 3]> = nodes.iter().map(|p| p.to_array()).collect();
-        let Ok(tree) = ImmutableKdTree::<f64, 3>::new_from_slice(&entries) else {
-            let mut out = vec![0; self.order.len()];
-            for (&i, n) in self
-                .order
-                .iter()
-                .zip(nearest_indices_brute(nodes, &self.sorted))
-            {
-                out[i as usize] = n;
-            }
-            return out;
-        };
         let mut out = vec![0; self.order.len()];
-        for (&i, p) in self.order.iter().zip(&self.sorted) {
-            out[i as usize] = tree
-                .query(&p.to_array())
-                .nearest_one::<SquaredEuclidean<f64>>()
-                .execute()
-                .item;
+        for (&i, n) in self.order.iter().zip(nearest_indices(nodes, &self.sorted)) {
+            out[i as usize] = n;
         }
         out
     }
