@@ -64,6 +64,7 @@ use crate::model::fem::{ElementPoint, Tessellation};
 use crate::model::superquadric::Trig;
 use bevy::math::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use std::sync::Arc;
 
 /// How each data point's point of influence u_r is chosen.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -99,6 +100,8 @@ pub struct RangeForces {
     /// The points in a spatially coherent order, for the nearest-node searches of every
     /// reassignment.
     query_order: QueryOrder,
+    /// A k-d tree of the points, for the coverage springs' searches.
+    point_tree: PointTree,
     /// Spring stiffness β per unit material area (each point gets β |Ω| / m).
     pub beta: f64,
     /// How points of influence are chosen.
@@ -232,10 +235,20 @@ pub const MIGRATION_AT_FOOT: f64 = 1e-3;
 /// For every query point, the index of the nearest point of `nodes` (usually the model's nodes),
 /// by a k-d tree over `nodes`. Falls back to [`nearest_indices_brute`] if the tree cannot be built.
 pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
-    let entries: Vec<[f64; 3]> = nodes.iter().map(|p| p.to_array()).collect();
-    let Ok(tree) = ImmutableKdTree::<f64, 3>::new_from_slice(&entries) else {
-        return nearest_indices_brute(nodes, points);
-    };
+    match kd_tree(nodes) {
+        Some(tree) => query_nearest(&tree, points),
+        None => nearest_indices_brute(nodes, points),
+    }
+}
+
+/// A k-d tree over `points`, or `None` where kiddo cannot build one.
+fn kd_tree(points: &[DVec3]) -> Option<ImmutableKdTree<f64, 3>> {
+    let entries: Vec<[f64; 3]> = points.iter().map(|p| p.to_array()).collect();
+    ImmutableKdTree::<f64, 3>::new_from_slice(&entries).ok()
+}
+
+/// For every query point, the index of the nearest entry of `tree`.
+fn query_nearest(tree: &ImmutableKdTree<f64, 3>, points: &[DVec3]) -> Vec<u32> {
     points
         .iter()
         .map(|p| {
@@ -245,6 +258,50 @@ pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
                 .item
         })
         .collect()
+}
+
+/// The k-d tree of a [`RangeForces`]' own data points, for the coverage springs' search of each
+/// node's nearest point: built at the first reassignment that needs it and kept, since the
+/// points never change (it used to be built again at every reassignment). It is the tree
+/// [`nearest_indices`] builds over the same points, so the answers are the same to the bit.
+/// Shared between clones; a cache of the points, so it takes no part in equality.
+#[derive(Clone, Default)]
+enum PointTree {
+    /// Not built yet.
+    #[default]
+    Unbuilt,
+    /// Built; `None` where kiddo could not build one (the brute force answers then).
+    Built(Option<Arc<ImmutableKdTree<f64, 3>>>),
+}
+
+impl PartialEq for PointTree {
+    /// Always equal: the tree is a function of the points, which the owner compares.
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for PointTree {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PointTree::Unbuilt => f.write_str("PointTree::Unbuilt"),
+            PointTree::Built(tree) => write!(f, "PointTree::Built({})", tree.is_some()),
+        }
+    }
+}
+
+impl PointTree {
+    /// For every query in `queries`, the index of the nearest of `points` (which must be the
+    /// points this tree was, or is now, built over): [`nearest_indices`]`(points, queries)`.
+    fn nearest_indices(&mut self, points: &[DVec3], queries: &[DVec3]) -> Vec<u32> {
+        if matches!(self, PointTree::Unbuilt) {
+            *self = PointTree::Built(kd_tree(points).map(Arc::new));
+        }
+        match self {
+            PointTree::Built(Some(tree)) => query_nearest(tree, queries),
+            _ => nearest_indices_brute(points, queries),
+        }
+    }
 }
 
 /// Query points kept in a spatially coherent order (Morton order of a 1024³ grid over their
@@ -350,6 +407,7 @@ impl RangeForces {
     pub fn new(points: Vec<DVec3>, beta: f64, mode: InfluenceMode) -> Self {
         Self {
             query_order: QueryOrder::new(&points),
+            point_tree: PointTree::Unbuilt,
             points,
             beta,
             mode,
@@ -435,7 +493,7 @@ impl RangeForces {
     /// [`WEIGHTS_SETTLED`].
     pub fn reassign(&mut self, tess: &Tessellation, node_x: &[DVec3]) -> usize {
         self.node_targets = if self.coverage > 0.0 {
-            nearest_indices(&self.points, node_x)
+            self.point_tree.nearest_indices(&self.points, node_x)
         } else {
             Vec::new()
         };
@@ -900,6 +958,43 @@ mod tests {
             assert_eq!(order.nearest_indices(&x), nearest_indices(&x, &points));
             assert_eq!(order.nearest_indices(&[]), nearest_indices(&[], &points));
         }
+    }
+
+    /// The coverage springs' targets come from a tree of the data points built once and kept:
+    /// at every reassignment, as the nodes move, they are a fresh search's answers, and a
+    /// clone (sharing the tree) and a copy that has not built it yet are equal and answer alike.
+    #[test]
+    fn kept_point_tree_gives_fresh_coverage_targets() {
+        let tess = Tessellation::new(20);
+        let pts = pseudo_random(700, 11);
+        let mut range = RangeForces::new(pts.clone(), 1.0, InfluenceMode::NearestNode);
+        let unbuilt = range.clone();
+        let mut x = squarish_nodes(20);
+        for round in 0..3 {
+            range.reassign(&tess, &x);
+            assert!(matches!(range.point_tree, PointTree::Built(Some(_))));
+            assert_eq!(
+                range.node_targets,
+                nearest_indices(&pts, &x),
+                "round {round}"
+            );
+            assert_eq!(range.node_targets, nearest_indices_brute(&pts, &x));
+            for p in &mut x {
+                *p = *p * 1.1 + DVec3::new(0.05, -0.02, 0.03);
+            }
+        }
+        let mut copy = range.clone();
+        assert_eq!(copy, range);
+        assert_eq!(unbuilt.points(), range.points());
+        copy.reassign(&tess, &x);
+        range.reassign(&tess, &x);
+        assert_eq!(copy.node_targets, range.node_targets);
+        // With no coverage springs no tree is built.
+        let mut bare = RangeForces::new(pts, 1.0, InfluenceMode::NearestNode);
+        bare.coverage = 0.0;
+        bare.reassign(&tess, &x);
+        assert!(bare.node_targets.is_empty());
+        assert!(matches!(bare.point_tree, PointTree::Unbuilt));
     }
 
     /// A unit sphere on a k-tessellation, its node positions, and three points 0.3 outside it
