@@ -1521,8 +1521,6 @@ mod tests {
         assert!(refine_stalled(1.02, Some(1.0)));
     }
 
-    /// A candidate is refined up to the margin times the chosen fit's placing distance and
-    /// not past it.
     /// Near a surface, the search round the nearest nodes finds the distance to the closest of
     /// all triangles, bit for bit; with one node, or none, it still answers.
     #[test]
@@ -1569,6 +1567,8 @@ mod tests {
         assert!(point_distances(&tess, &x, &[]).is_empty());
     }
 
+    /// A candidate is refined up to the margin times the chosen fit's placing distance and
+    /// not past it.
     #[test]
     fn similarity_candidates_refine_within_the_margin() {
         let chosen = 0.02;
