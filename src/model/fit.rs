@@ -29,8 +29,9 @@ use super::fem::Tessellation;
 use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces, Robust};
 use super::init::{InitialPose, initial_pose, moments};
 use super::superquadric::{LEAST_EPSILON, MIN_EPSILON, SuperquadricParams};
+use crate::model::forces::range::kd_tree;
 use bevy::math::DVec3;
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use kiddo::SquaredEuclidean;
 use std::f64::consts::SQRT_2;
 use std::num::NonZero;
 
@@ -1311,8 +1312,7 @@ pub fn point_distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) 
             }
         }
     }
-    let entries: Vec<[f64; 3]> = node_x.iter().map(|p| p.to_array()).collect();
-    let tree = ImmutableKdTree::<f64, 3>::new_from_slice(&entries).ok();
+    let tree = kd_tree(node_x);
     let k = NonZero::new(RESIDUAL_CANDIDATE_NODES.min(node_x.len()).max(1))
         .unwrap_or(NonZero::<usize>::MIN);
     // A triangle round several candidate nodes is measured once per point: `seen[t]` holds the

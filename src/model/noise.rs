@@ -21,8 +21,9 @@
 use super::fit::Normalization;
 use super::init::{Moments, moments};
 use super::linalg::{cholesky_solve, symmetric_eigen3};
+use crate::model::forces::range::kd_tree;
 use bevy::math::DVec3;
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use kiddo::SquaredEuclidean;
 use std::num::NonZeroUsize;
 
 /// Fewest neighbours of each sampled point in the local quadratic fit.
@@ -54,8 +55,7 @@ pub fn estimate_noise(points: &[DVec3]) -> Option<NoiseEstimate> {
     if !(scale > 0.0) {
         return None;
     }
-    let entries: Vec<[f64; 3]> = points.iter().map(|p| p.to_array()).collect();
-    let tree = ImmutableKdTree::<f64, 3>::new_from_slice(&entries).ok()?;
+    let tree = kd_tree(points)?;
     let stride = points.len().div_ceil(NOISE_SAMPLES).max(1);
     let mut variances: Vec<f64> = points
         .iter()

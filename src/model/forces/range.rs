@@ -241,8 +241,8 @@ pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
     }
 }
 
-/// A k-d tree over `points`, or `None` where kiddo cannot build one.
-fn kd_tree(points: &[DVec3]) -> Option<ImmutableKdTree<f64, 3>> {
+/// A k-d tree over `points` (entry i is `points[i]`), or `None` where kiddo cannot build one.
+pub(crate) fn kd_tree(points: &[DVec3]) -> Option<ImmutableKdTree<f64, 3>> {
     let entries: Vec<[f64; 3]> = points.iter().map(|p| p.to_array()).collect();
     ImmutableKdTree::<f64, 3>::new_from_slice(&entries).ok()
 }
