@@ -1169,7 +1169,11 @@ pub fn fit(
             placed = Some(relax.x.clone());
         }
         let cap = opts.max_steps.saturating_sub(other_steps);
-        let stage = relax.refine(score, cap, &mut progress)?;
+        // The chosen fit refines alone, so its migration may use every core.
+        relax.range.parallel = true;
+        let stage = relax.refine(score, cap, &mut progress);
+        relax.range.parallel = false;
+        let stage = stage?;
         if !stage.kept {
             other_steps += stage.steps;
         }

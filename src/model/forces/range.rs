@@ -64,6 +64,7 @@ use crate::model::fem::{ElementPoint, Tessellation};
 use crate::model::superquadric::Trig;
 use bevy::math::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use rayon::prelude::*;
 use std::sync::Arc;
 
 /// How each data point's point of influence u_r is chosen.
@@ -119,6 +120,11 @@ pub struct RangeForces {
     /// spring pulls only along the surface normal at its point of influence, and acts on the
     /// global DOFs only. `false` (the default) gives the paper's springs.
     pub plane: bool,
+    /// Spread [`Self::migrate`] over the cores (rayon, in runs of [`PARALLEL_MIGRATION`] points;
+    /// the same points of influence to the bit). For a fit that runs alone: the fitter sets it
+    /// for the chosen fit's refining stage, while the other cores have nothing to do. `false`
+    /// (the default) migrates on the calling thread.
+    pub parallel: bool,
     /// How far each point of influence lies off the mesh's triangles, on the model's continuous
     /// surface ([`ModelSurface`]): x(u_r) − Σ N_k x_k as the last [`Self::migrate`] given that
     /// surface found it. Added to the mesh's point until the next migration (the offset changes
@@ -416,6 +422,7 @@ impl RangeForces {
             node_targets: Vec::new(),
             robust: None,
             plane: false,
+            parallel: false,
             surface_offset: Vec::new(),
             surface_terms: Vec::new(),
         }
@@ -741,119 +748,153 @@ impl RangeForces {
             return;
         };
         let m = self.points.len();
-        if surface.is_some() {
-            self.surface_offset.resize(m, DVec3::ZERO);
-            self.surface_terms
-                .resize(m, SurfaceTerms::new(f64::NAN, f64::NAN));
+        // Each point moves on its own, so the points may go over the cores; every point's
+        // result is the same on any thread.
+        let run = if self.parallel {
+            PARALLEL_MIGRATION
         } else {
-            self.surface_offset.clear();
-            self.surface_terms.clear();
-        }
-        for (i, (r, inf)) in self
-            .points
-            .iter()
-            .zip(self.influence.iter_mut())
-            .enumerate()
-        {
-            // A point reassigned onto a node has no shape-function derivatives there; its
-            // element's are the mesh's tangents.
-            let located;
-            let at = if inf.at.weights[0] == 1.0 {
-                located = tess.locate(inf.u, inf.v);
-                &located
-            } else {
-                &inf.at
-            };
-            let mesh_tangent = |d: &[f64; 4]| -> DVec3 {
-                (0..4).map(|k| d[k] * node_x[at.nodes[k] as usize]).sum()
-            };
-            let (x, tangents) = match surface {
-                Some(s) => {
-                    // The terms of the point's (u, v): kept from the last migration unless the
-                    // point has been reassigned since.
-                    let kept = &mut self.surface_terms[i];
-                    if kept.u != inf.u || kept.v != inf.v {
-                        *kept = SurfaceTerms::new(inf.u, inf.v);
-                    }
-                    let (x, tangents) = s.with_tangents_terms(&kept.trig, at);
-                    let on_node = inf.at.weights[0] == 1.0;
-                    (
-                        if on_node {
-                            node_x[inf.at.nodes[0] as usize]
-                        } else {
-                            x
-                        },
-                        tangents,
-                    )
-                }
-                None => (inf.at.interpolate(|k| node_x[k]), None),
-            };
-            let (tu, tv) = tangents.unwrap_or_else(|| (mesh_tangent(&at.du), mesh_tangent(&at.dv)));
-            let f = *r - x;
-            let step = |t: DVec3, h: f64| {
-                let t2 = t.length_squared();
-                if t2 > 1e-24 {
-                    (rate * f.dot(t) / t2).clamp(-h, h)
-                } else {
-                    0.0
-                }
-            };
-            let (mut du, mut dv, at_foot) = match surface {
-                None => (step(tu, tess.h_u), step(tv, tess.h_v), false),
-                Some(_) => {
-                    // The whole Gauss–Newton move: the superquadric's tangents are not
-                    // orthogonal, least of all near its edges.
-                    let (uu, uv, vv) = (tu.dot(tu), tu.dot(tv), tv.dot(tv));
-                    let (fu, fv) = (f.dot(tu), f.dot(tv));
-                    let det = uu * vv - uv * uv;
-                    let (du, dv) = if det > 1e-12 * uu * vv {
-                        ((vv * fu - uv * fv) / det, (uu * fv - uv * fu) / det)
-                    } else {
-                        (step(tu, f64::INFINITY), step(tv, f64::INFINITY))
-                    };
-                    // At most one element, in the move's own direction.
-                    let scale = (tess.h_u / du.abs()).min(tess.h_v / dv.abs()).min(1.0);
-                    let normal = tu.cross(tv).normalize_or_zero();
-                    let along = f - f.dot(normal) * normal;
-                    let at_foot = along.length() <= MIGRATION_AT_FOOT * f.length();
-                    (rate * scale * du, rate * scale * dv, at_foot)
-                }
-            };
-            let mut foot = x;
-            if !at_foot {
-                // Descent safeguard: across element edges the mesh's tangents jump, and a full
-                // move can overshoot a kink of the faceted surface or a sharp edge of the
-                // superquadric; halve it until the distance does not grow.
-                let here = f.length_squared();
-                for _ in 0..4 {
-                    let (u, v) = Tessellation::wrap(inf.u + du, inf.v + dv);
-                    let at = tess.locate(u, v);
-                    // The trial's terms become the point's if the move is taken. On a node the
-                    // surface is the node (to rounding, which must not make a point that
-                    // migration cannot move look farther than its node and be reassigned every
-                    // time).
-                    let trial = surface.map(|s| (s, SurfaceTerms::new(u, v)));
-                    let moved = match &trial {
-                        Some((s, t)) if at.weights[0] != 1.0 => s.at_terms(&t.trig, &at),
-                        _ => at.interpolate(|k| node_x[k]),
-                    };
-                    if moved.distance_squared(*r) <= here {
-                        *inf = Influence { u, v, at };
-                        foot = moved;
-                        if let Some((_, t)) = trial {
-                            self.surface_terms[i] = t;
-                        }
-                        break;
-                    }
-                    du *= 0.5;
-                    dv *= 0.5;
-                }
+            usize::MAX
+        };
+        let (points, influence) = (&self.points, &mut self.influence);
+        match surface {
+            Some(s) => {
+                self.surface_offset.resize(m, DVec3::ZERO);
+                self.surface_terms
+                    .resize(m, SurfaceTerms::new(f64::NAN, f64::NAN));
+                points
+                    .par_iter()
+                    .zip(influence.par_iter_mut())
+                    .zip(self.surface_terms.par_iter_mut())
+                    .zip(self.surface_offset.par_iter_mut())
+                    .with_min_len(run)
+                    .for_each(|(((r, inf), kept), offset)| {
+                        let foot = migrate_point(*r, inf, Some((s, kept)), tess, node_x, rate);
+                        *offset = foot - inf.at.interpolate(|k| node_x[k]);
+                    });
             }
-            if let Some(d) = self.surface_offset.get_mut(i) {
-                *d = foot - inf.at.interpolate(|k| node_x[k]);
+            None => {
+                self.surface_offset.clear();
+                self.surface_terms.clear();
+                points
+                    .par_iter()
+                    .zip(influence.par_iter_mut())
+                    .with_min_len(run)
+                    .for_each(|(r, inf)| {
+                        migrate_point(*r, inf, None, tess, node_x, rate);
+                    });
             }
         }
     }
+}
+
+/// The fewest points one thread migrates at a time when [`RangeForces::parallel`] is set (about
+/// 40 µs of work on the continuous surface).
+pub const PARALLEL_MIGRATION: usize = 128;
+
+/// [`RangeForces::migrate`] for one data point `r` whose point of influence is `inf`, with the
+/// model's continuous surface and the point's kept [`SurfaceTerms`] when the points lie on it.
+/// Returns the point of influence's position.
+fn migrate_point(
+    r: DVec3,
+    inf: &mut Influence,
+    mut surface: Option<(&ModelSurface, &mut SurfaceTerms)>,
+    tess: &Tessellation,
+    node_x: &[DVec3],
+    rate: f64,
+) -> DVec3 {
+    // A point reassigned onto a node has no shape-function derivatives there; its
+    // element's are the mesh's tangents.
+    let located;
+    let at = if inf.at.weights[0] == 1.0 {
+        located = tess.locate(inf.u, inf.v);
+        &located
+    } else {
+        &inf.at
+    };
+    let mesh_tangent =
+        |d: &[f64; 4]| -> DVec3 { (0..4).map(|k| d[k] * node_x[at.nodes[k] as usize]).sum() };
+    let (x, tangents) = match &mut surface {
+        Some((s, kept)) => {
+            // The terms of the point's (u, v): kept from the last migration unless the
+            // point has been reassigned since.
+            if kept.u != inf.u || kept.v != inf.v {
+                **kept = SurfaceTerms::new(inf.u, inf.v);
+            }
+            let (x, tangents) = s.with_tangents_terms(&kept.trig, at);
+            let on_node = inf.at.weights[0] == 1.0;
+            (
+                if on_node {
+                    node_x[inf.at.nodes[0] as usize]
+                } else {
+                    x
+                },
+                tangents,
+            )
+        }
+        None => (inf.at.interpolate(|k| node_x[k]), None),
+    };
+    let (tu, tv) = tangents.unwrap_or_else(|| (mesh_tangent(&at.du), mesh_tangent(&at.dv)));
+    let f = r - x;
+    let step = |t: DVec3, h: f64| {
+        let t2 = t.length_squared();
+        if t2 > 1e-24 {
+            (rate * f.dot(t) / t2).clamp(-h, h)
+        } else {
+            0.0
+        }
+    };
+    let (mut du, mut dv, at_foot) = match surface {
+        None => (step(tu, tess.h_u), step(tv, tess.h_v), false),
+        Some(_) => {
+            // The whole Gauss–Newton move: the superquadric's tangents are not
+            // orthogonal, least of all near its edges.
+            let (uu, uv, vv) = (tu.dot(tu), tu.dot(tv), tv.dot(tv));
+            let (fu, fv) = (f.dot(tu), f.dot(tv));
+            let det = uu * vv - uv * uv;
+            let (du, dv) = if det > 1e-12 * uu * vv {
+                ((vv * fu - uv * fv) / det, (uu * fv - uv * fu) / det)
+            } else {
+                (step(tu, f64::INFINITY), step(tv, f64::INFINITY))
+            };
+            // At most one element, in the move's own direction.
+            let scale = (tess.h_u / du.abs()).min(tess.h_v / dv.abs()).min(1.0);
+            let normal = tu.cross(tv).normalize_or_zero();
+            let along = f - f.dot(normal) * normal;
+            let at_foot = along.length() <= MIGRATION_AT_FOOT * f.length();
+            (rate * scale * du, rate * scale * dv, at_foot)
+        }
+    };
+    let mut foot = x;
+    if !at_foot {
+        // Descent safeguard: across element edges the mesh's tangents jump, and a full
+        // move can overshoot a kink of the faceted surface or a sharp edge of the
+        // superquadric; halve it until the distance does not grow.
+        let here = f.length_squared();
+        for _ in 0..4 {
+            let (u, v) = Tessellation::wrap(inf.u + du, inf.v + dv);
+            let at = tess.locate(u, v);
+            // The trial's terms become the point's if the move is taken. On a node the
+            // surface is the node (to rounding, which must not make a point that
+            // migration cannot move look farther than its node and be reassigned every
+            // time).
+            let trial = surface.as_ref().map(|(s, _)| (*s, SurfaceTerms::new(u, v)));
+            let moved = match &trial {
+                Some((s, t)) if at.weights[0] != 1.0 => s.at_terms(&t.trig, &at),
+                _ => at.interpolate(|k| node_x[k]),
+            };
+            if moved.distance_squared(r) <= here {
+                *inf = Influence { u, v, at };
+                foot = moved;
+                if let (Some((_, t)), Some((_, kept))) = (trial, surface.as_mut()) {
+                    **kept = t;
+                }
+                break;
+            }
+            du *= 0.5;
+            dv *= 0.5;
+        }
+    }
+    foot
 }
 
 #[cfg(test)]
@@ -1135,6 +1176,65 @@ mod tests {
                 .any(|(inf, t)| (t.u, t.v) == (inf.u, inf.v)),
             "no point kept its terms"
         );
+    }
+
+    /// Migration spread over the cores moves every point of influence exactly as migration on
+    /// one thread does, on the continuous surface (with its kept terms and offsets) and on the
+    /// mesh, over steps in which the superquadric changes and the points are reassigned. The
+    /// points are several runs of [`PARALLEL_MIGRATION`], so that rayon splits them.
+    #[test]
+    fn parallel_migration_moves_every_point_as_one_thread_does() {
+        let shape = SuperquadricParams {
+            a1: 0.8,
+            a2: 1.1,
+            e1: 0.5,
+            e2: 1.3,
+            ..Default::default()
+        };
+        let tess = Tessellation::new(16);
+        let mut state = ModelState::new(&tess, DVec3::ZERO, DQuat::IDENTITY, shape);
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        let points = pseudo_random(8 * PARALLEL_MIGRATION + 37, 11);
+        let mut serial = RangeForces::new(points, 1.0, InfluenceMode::Migrating { rate: 1.0 });
+        serial.reassign(&tess, &x);
+        let mut parallel = serial.clone();
+        parallel.parallel = true;
+        let mut faceted = (serial.clone(), parallel.clone());
+        for step in 0..10 {
+            state.shape.e1 = 0.5 + 0.03 * step as f64;
+            state.shape.a2 = 1.1 - 0.02 * step as f64;
+            state.node_positions(&tess, &mut x);
+            if step == 5 {
+                for forces in [&mut serial, &mut parallel, &mut faceted.0, &mut faceted.1] {
+                    forces.reassign(&tess, &x);
+                }
+            }
+            serial.migrate(&tess, &x, Some(&state.surface()));
+            parallel.migrate(&tess, &x, Some(&state.surface()));
+            assert_eq!(serial.influence, parallel.influence, "step {step}");
+            assert_eq!(
+                serial.surface_offset, parallel.surface_offset,
+                "step {step}"
+            );
+            assert_eq!(serial.surface_terms, parallel.surface_terms, "step {step}");
+            faceted.0.migrate(&tess, &x, None);
+            faceted.1.migrate(&tess, &x, None);
+            assert_eq!(faceted.0.influence, faceted.1.influence, "step {step}");
+            assert!(faceted.1.surface_offset.is_empty());
+        }
+        // The points did migrate off their nodes, on both surfaces.
+        for forces in [&parallel, &faceted.1] {
+            let off_nodes = forces
+                .influence
+                .iter()
+                .filter(|inf| inf.at.weights[0] != 1.0)
+                .count();
+            assert!(
+                off_nodes > forces.points().len() / 2,
+                "{off_nodes} off nodes"
+            );
+        }
     }
 
     #[test]
