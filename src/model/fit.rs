@@ -1064,9 +1064,19 @@ fn axis_hypotheses(pose: &InitialPose) -> [InitialPose; 3] {
     std::array::from_fn(|i| turned_axes(pose, i, false))
 }
 
-/// Runs `job` on every item, spread over the available cores (each worker takes the next item);
-/// the calling thread works too and is the only one that reports `progress`. Results come back in
-/// the items' order, so the outcome does not depend on the scheduling.
+/// The most threads [`run_parallel`] starts: one for each item up to this many.
+pub const MAX_FIT_THREADS: usize = 8;
+
+/// Runs `job` on every item, each on a thread of its own (up to [`MAX_FIT_THREADS`]; beyond that
+/// each thread takes the next item), the calling thread among them and the only one that reports
+/// `progress`. Results come back in the items' order, so the outcome does not depend on the
+/// scheduling.
+///
+/// A thread an item rather than one a core: the items are a fit's three axis hypotheses or its
+/// three to five similarity candidates, of about equal length, and on two cores a worker a core
+/// runs three of them as two after one (the second core idle for the third), where the operating
+/// system's time slicing runs them side by side and finishes in about one and a half
+/// (BENCHMARKS.md, log entry 19).
 pub(crate) fn run_parallel<I: Sync, R: Send>(
     items: &[I],
     job: impl Fn(&I, &mut dyn FnMut(&FitProgress)) -> R + Sync,
@@ -1074,9 +1084,7 @@ pub(crate) fn run_parallel<I: Sync, R: Send>(
 ) -> Vec<R> {
     use std::sync::Mutex;
     use std::sync::atomic::{AtomicUsize, Ordering};
-    let workers = std::thread::available_parallelism()
-        .map_or(1, |n| n.get())
-        .min(items.len());
+    let workers = items.len().min(MAX_FIT_THREADS);
     let next = AtomicUsize::new(0);
     let results: Mutex<Vec<(usize, R)>> = Mutex::new(Vec::with_capacity(items.len()));
     let work = |progress: &mut dyn FnMut(&FitProgress)| {
@@ -1186,7 +1194,7 @@ pub fn fit(
         let candidates = similarity_candidates(&InitialPose::of(&relax.state));
         let share = similarity_share(opts.max_steps, other_steps + relax.steps, candidates.len());
         let placed = placed.as_deref().map(weighted);
-        // The candidates are independent runs: they go over the cores like the hypotheses.
+        // The candidates are independent runs: they run side by side like the hypotheses.
         let run = |candidate: &InitialPose, progress: &mut dyn FnMut(&FitProgress)| {
             let mut other = Relaxation::new(&tess, opts, &unit, candidate);
             let converged = other.run(Stage::Global, share, &mut |p: &FitProgress| progress(p))?;

@@ -470,7 +470,7 @@ pub fn fit_part(
     })
 }
 
-/// Fits every part in `initial` to the image (each on its own, the parts spread over the cores).
+/// Fits every part in `initial` to the image (each on its own, the parts side by side).
 pub fn fit_image(
     potential: Arc<ImagePotential>,
     initial: &[PartAxes],
@@ -478,7 +478,7 @@ pub fn fit_image(
 ) -> Result<Vec<ImagePartFit>, StepError> {
     let tess = Tessellation::new(opts.k);
     let forces = opts.forces(potential);
-    // The parts spread over the cores (as range parts are), not a thread per part.
+    // The parts side by side (as range parts are): a thread a part, up to `MAX_FIT_THREADS`.
     super::fit::run_parallel(
         initial,
         |axes, _| fit_part(&tess, &forces, axes.state(&tess), opts),

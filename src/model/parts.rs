@@ -260,7 +260,7 @@ fn members_of(points: &[DVec3], owner: &[usize], k: usize) -> Vec<Vec<DVec3>> {
         .collect()
 }
 
-/// Fits every part to its points with its options, the parts spread over the cores.
+/// Fits every part to its points with its options, the parts side by side ([`run_parallel`]).
 fn fit_each(members: &[Vec<DVec3>], opts: &[FitOptions]) -> Result<Vec<FitReport>, FitError> {
     let jobs: Vec<(&Vec<DVec3>, &FitOptions)> = members.iter().zip(opts).collect();
     run_parallel(&jobs, |(m, o), _| fit(m, o, |_| {}), &mut |_| {})
