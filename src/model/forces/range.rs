@@ -1127,22 +1127,32 @@ mod tests {
         assert!((exact.energy(&tess, &x) - e).abs() < 1e-6 * e);
     }
 
+    /// A k-tessellated superquadric at the origin with aspect ratios a1, a2 and exponents ε1, ε2
+    /// (`[a1, a2, e1, e2]`), its state and its node positions.
+    fn superquadric_nodes(
+        k: usize,
+        [a1, a2, e1, e2]: [f64; 4],
+    ) -> (Tessellation, ModelState, Vec<DVec3>) {
+        let shape = SuperquadricParams {
+            a1,
+            a2,
+            e1,
+            e2,
+            ..Default::default()
+        };
+        let tess = Tessellation::new(k);
+        let state = ModelState::new(&tess, DVec3::ZERO, DQuat::IDENTITY, shape);
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        (tess, state, x)
+    }
+
     #[test]
     fn the_kept_surface_terms_change_no_migration() {
         // Migrations that keep each point's terms from the last one, and migrations that
         // compute them afresh every time, on a superquadric whose exponents change between
         // them: the same points of influence to the bit, and every kept entry is its point's.
-        let shape = SuperquadricParams {
-            a1: 0.9,
-            a2: 0.7,
-            e1: 0.4,
-            e2: 1.5,
-            ..Default::default()
-        };
-        let tess = Tessellation::new(12);
-        let mut state = ModelState::new(&tess, DVec3::ZERO, DQuat::IDENTITY, shape);
-        let mut x = Vec::new();
-        state.node_positions(&tess, &mut x);
+        let (tess, mut state, mut x) = superquadric_nodes(12, [0.9, 0.7, 0.4, 1.5]);
         let mut kept = RangeForces::new(
             pseudo_random(200, 5),
             1.0,
@@ -1184,17 +1194,7 @@ mod tests {
     /// points are several runs of [`PARALLEL_MIGRATION`], so that rayon splits them.
     #[test]
     fn parallel_migration_moves_every_point_as_one_thread_does() {
-        let shape = SuperquadricParams {
-            a1: 0.8,
-            a2: 1.1,
-            e1: 0.5,
-            e2: 1.3,
-            ..Default::default()
-        };
-        let tess = Tessellation::new(16);
-        let mut state = ModelState::new(&tess, DVec3::ZERO, DQuat::IDENTITY, shape);
-        let mut x = Vec::new();
-        state.node_positions(&tess, &mut x);
+        let (tess, mut state, mut x) = superquadric_nodes(16, [0.8, 1.1, 0.5, 1.3]);
         let points = pseudo_random(8 * PARALLEL_MIGRATION + 37, 11);
         let mut serial = RangeForces::new(points, 1.0, InfluenceMode::Migrating { rate: 1.0 });
         serial.reassign(&tess, &x);
