@@ -1177,11 +1177,9 @@ pub fn fit(
             placed = Some(relax.x.clone());
         }
         let cap = opts.max_steps.saturating_sub(other_steps);
-        // The chosen fit refines alone, so its migration may use every core.
+        // From here on the chosen fit runs alone, so its migration may use every core.
         relax.range.parallel = true;
-        let stage = relax.refine(score, cap, &mut progress);
-        relax.range.parallel = false;
-        let stage = stage?;
+        let stage = relax.refine(score, cap, &mut progress)?;
         if !stage.kept {
             other_steps += stage.steps;
         }

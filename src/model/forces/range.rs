@@ -122,7 +122,7 @@ pub struct RangeForces {
     pub plane: bool,
     /// Spread [`Self::migrate`] over the cores (rayon, in runs of [`PARALLEL_MIGRATION`] points;
     /// the same points of influence to the bit). For a fit that runs alone: the fitter sets it
-    /// for the chosen fit's refining stage, while the other cores have nothing to do. `false`
+    /// on the chosen fit from its refining stage on, while the other cores have nothing to do. `false`
     /// (the default) migrates on the calling thread.
     pub parallel: bool,
     /// How far each point of influence lies off the mesh's triangles, on the model's continuous
