@@ -61,20 +61,30 @@ pub const REFINE_CHECK_EVERY: u32 = 250;
 /// closer, then its length ran away.
 pub const REFINE_GIVE_UP: f64 = 1.01;
 
-/// A refinement is also given up at a check when the superquadric's longest semi-axis has grown
-/// past this multiple of its length at the start of the stage. The refinement polishes a fit
-/// that the global stage has placed and sized; a model that grows by half again is the other way
-/// a cylinder's length runs away with its rim points, the mean distance still falling as it
-/// goes (on EMS's `noisy_pointCloud_example_3`, two similarity candidates grew 3× in 3000 steps).
+/// A refinement is also given up, after any step, when the superquadric's longest semi-axis has
+/// grown past this multiple of its length at the start of the stage ([`refine_overgrown`]). The
+/// refinement polishes a fit that the global stage has placed and sized; a model that grows by
+/// half again is the other way a cylinder's length runs away with its rim points, the mean
+/// distance still falling as it goes (on EMS's `noisy_pointCloud_example_3`, two similarity
+/// candidates grew 3× in 3000 steps).
 pub const REFINE_MAX_GROWTH: f64 = 1.5;
 
 /// The refining stage's check every [`REFINE_CHECK_EVERY`] steps, shared by [`fit`] and the
-/// plugin's fit: given the mean `distance` of the points now, the `least` seen before, and the
-/// longest semi-axis `longest` now and `start` at the start of the stage, returns the new least,
-/// or `None` to give the refinement up ([`REFINE_GIVE_UP`], [`REFINE_MAX_GROWTH`]).
-pub fn refine_check(distance: f64, least: f64, longest: f64, start: f64) -> Option<f64> {
-    (distance <= REFINE_GIVE_UP * least && longest <= REFINE_MAX_GROWTH * start)
-        .then(|| least.min(distance))
+/// plugin's fit: given the mean `distance` of the points now and the `least` seen before, returns
+/// the new least, or `None` to give the refinement up ([`REFINE_GIVE_UP`]).
+pub fn refine_check(distance: f64, least: f64) -> Option<f64> {
+    (distance <= REFINE_GIVE_UP * least).then(|| least.min(distance))
+}
+
+/// Whether a refinement has run off in length: its longest semi-axis `longest` is past
+/// [`REFINE_MAX_GROWTH`] times `start`, its length at the start of the stage. One number, so
+/// [`fit`] and the plugin's fit ask after every step of the stage that did not end it: a model
+/// that runs off in length goes on running off, and was given up only at the next check of
+/// [`REFINE_CHECK_EVERY`] (BENCHMARKS.md, log entry 20: EMS's `partial_pointCloud_example_1`
+/// had one similarity candidate 2.2 times as long 100 steps into its refinement and 62 times at
+/// the check 250 steps in).
+pub fn refine_overgrown(longest: f64, start: f64) -> bool {
+    longest > REFINE_MAX_GROWTH * start
 }
 
 /// A refinement whose inlier-weighted mean point-to-surface distance ([`refine_distances`], with
@@ -1004,12 +1014,17 @@ impl<'a> Relaxation<'a> {
             if done {
                 return Ok(true);
             }
-            if let Some(least) = self.refine_least
-                && self.steps.is_multiple_of(REFINE_CHECK_EVERY)
-            {
-                let (distance, weighted) = refine_distances(tess, &self.x, &self.range);
+            if let Some(least) = self.refine_least {
                 let longest = self.state.shape.semi_axes().max_element();
-                self.refine_least = refine_check(distance, least, longest, self.refine_start);
+                if refine_overgrown(longest, self.refine_start) {
+                    self.gave_up = true;
+                    return Ok(false);
+                }
+                if !self.steps.is_multiple_of(REFINE_CHECK_EVERY) {
+                    continue;
+                }
+                let (distance, weighted) = refine_distances(tess, &self.x, &self.range);
+                self.refine_least = refine_check(distance, least);
                 if refine_stalled(weighted, self.refine_previous) {
                     self.refine_least = None;
                 }
@@ -1461,12 +1476,12 @@ mod tests {
     #[test]
     fn a_refinement_is_given_up_when_it_runs_off_or_grows_too_long() {
         // Coming closer lowers the least distance; a little farther keeps it.
-        assert_eq!(refine_check(0.8, 1.0, 2.0, 2.0), Some(0.8));
-        assert_eq!(refine_check(1.005, 1.0, 2.0, 2.0), Some(1.0));
+        assert_eq!(refine_check(0.8, 1.0), Some(0.8));
+        assert_eq!(refine_check(1.005, 1.0), Some(1.0));
         // More than 1 % farther than the least, or half again as long: given up.
-        assert_eq!(refine_check(1.02, 1.0, 2.0, 2.0), None);
-        assert_eq!(refine_check(0.5, 1.0, 3.01, 2.0), None);
-        assert_eq!(refine_check(0.5, 1.0, 2.99, 2.0), Some(0.5));
+        assert_eq!(refine_check(1.02, 1.0), None);
+        assert!(refine_overgrown(3.01, 2.0));
+        assert!(!refine_overgrown(2.99, 2.0));
     }
 
     #[test]
@@ -1520,6 +1535,48 @@ mod tests {
             },
         );
         assert!(extend_squareness(&tess, &round, &sphere, &vec![1.0; 500]).is_none());
+    }
+
+    /// The growth rule is asked after every step: a refinement whose model runs off in length
+    /// is given up at the first step that takes it past [`REFINE_MAX_GROWTH`], long before the
+    /// distance check of [`REFINE_CHECK_EVERY`] steps.
+    #[test]
+    fn a_refinement_is_given_up_at_the_first_step_that_makes_it_too_long() {
+        use crate::synthetic::superquadric_cloud;
+        let tess = Tessellation::new(15);
+        let opts = FitOptions::default();
+        // Points on an ellipsoid 6 times as long as wide; the model starts as a third of it.
+        let long = SuperquadricParams {
+            a: 3.0,
+            a1: 1.0 / 6.0,
+            a2: 1.0 / 6.0,
+            ..Default::default()
+        };
+        let points = superquadric_cloud(&long, DVec3::ZERO, DQuat::IDENTITY, 500, 0.0, 7);
+        let start = InitialPose {
+            translation: DVec3::ZERO,
+            rotation: DQuat::IDENTITY,
+            shape: SuperquadricParams { a: 1.0, ..long },
+        };
+        let longest = |r: &Relaxation| r.state.shape.semi_axes().max_element();
+        let refine_for = |budget: u32| {
+            let mut relax = Relaxation::new(&tess, &opts, &points, &start);
+            relax.refine_least = Some(f64::INFINITY);
+            relax.refine_start = longest(&relax);
+            let at_rest = relax
+                .run(Stage::Refine, budget, &mut |_| {})
+                .expect("refine");
+            (relax, at_rest)
+        };
+        let (given_up, at_rest) = refine_for(REFINE_MAX_STEPS);
+        assert!(given_up.gave_up && !at_rest);
+        let steps = given_up.steps;
+        assert!(steps > 1 && steps < REFINE_CHECK_EVERY, "{steps}");
+        assert!(longest(&given_up) > REFINE_MAX_GROWTH * given_up.refine_start);
+        // One step fewer: not yet too long, and going on.
+        let (before, _) = refine_for(steps - 1);
+        assert!(!before.gave_up && before.steps == steps - 1);
+        assert!(longest(&before) <= REFINE_MAX_GROWTH * before.refine_start);
     }
 
     #[test]

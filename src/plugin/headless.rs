@@ -16,8 +16,8 @@ use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
     Refinement, Stage, cross_section_dual, extend_squareness, fit_residuals, global_stages,
     has_joint_stage, initial_hypotheses, mean_distance, refine_candidate, refine_check,
-    refine_distances, refine_stalled, similarity_candidates, similarity_share, validate_options,
-    validate_points, weighted_mean_distance,
+    refine_distances, refine_overgrown, refine_stalled, similarity_candidates, similarity_share,
+    validate_options, validate_points, weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
 use crate::model::init::InitialPose;
@@ -297,9 +297,10 @@ fn distance_of(
 }
 
 /// The refining stage on model `e`, as `fit` runs it, within `cap` steps of the model in all:
-/// checked every [`REFINE_CHECK_EVERY`] of the model's steps by [`refine_check`] (given up past
-/// [`crate::model::fit::REFINE_GIVE_UP`] times the least distance seen, `score` at first, or when
-/// the model grows too long) and [`refine_stalled`]; kept when at rest and no farther than
+/// given up when the model grows too long ([`refine_overgrown`], after every step) or, checked
+/// every [`REFINE_CHECK_EVERY`] of the model's steps, past
+/// [`crate::model::fit::REFINE_GIVE_UP`] times the least distance seen, `score` at first
+/// ([`refine_check`]), or stalled ([`refine_stalled`]); kept when at rest and no farther than
 /// `score`, else the model goes back to its state before the stage. Returns the outcome and the steps that were undone.
 fn refine(
     app: &mut App,
@@ -360,6 +361,16 @@ fn refine(
         seen = control.steps;
         // `fit` checks after every step that did not end the stage at rest.
         let at_rest = driver.done && driver.converged;
+        if !at_rest {
+            let shape = world.get::<GlobalShape>(e).ok_or(FitError::Degenerate)?;
+            let longest = crate::model::superquadric::SuperquadricParams::from(*shape)
+                .semi_axes()
+                .max_element();
+            if refine_overgrown(longest, start_extent) {
+                gave_up = true;
+                break;
+            }
+        }
         if !at_rest && seen.is_multiple_of(REFINE_CHECK_EVERY as u64) {
             let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
             let range = app
@@ -369,10 +380,9 @@ fn refine(
             let mut x = Vec::new();
             state.node_positions(tess, &mut x);
             let (distance, weighted) = refine_distances(tess, &x, &range.forces);
-            let longest = state.shape.semi_axes().max_element();
             let stalled = refine_stalled(weighted, previous);
             previous = Some(weighted);
-            match refine_check(distance, least, longest, start_extent) {
+            match refine_check(distance, least) {
                 Some(l) if !stalled => least = l,
                 _ => {
                     gave_up = true;
