@@ -676,7 +676,11 @@ pub fn weighted_mean_distance(
     points: &[DVec3],
     weights: &[f64],
 ) -> f64 {
-    let d = point_distances(tess, node_x, points);
+    weighted_mean(&point_distances(tess, node_x, points), weights)
+}
+
+/// The mean of the distances `d`, `d[i]` weighted by `weights[i]`.
+fn weighted_mean(d: &[f64], weights: &[f64]) -> f64 {
     let total: f64 = weights.iter().sum();
     d.iter().zip(weights).map(|(d, w)| d * w).sum::<f64>() / total.max(f64::MIN_POSITIVE)
 }
@@ -690,7 +694,7 @@ pub const EXTENDED_EPSILONS: [f64; 4] = [0.05, 0.03, 0.02, LEAST_EPSILON];
 /// exponent at that bound is asking for a squarer shape. Each such exponent (ε1, then ε2 with ε1's
 /// outcome) is tried at each of [`EXTENDED_EPSILONS`], every other parameter held, and set to the
 /// trial whose surface lies closest to `points` weighted by `weights` (the similarity switch's
-/// score, [`weighted_mean_distance`]) if it is closer than the fit's. The shape when an exponent
+/// score, [`weighted_mean_distance`], measured over every core) if it is closer than the fit's. The shape when an exponent
 /// moved, `None` otherwise.
 ///
 /// EMS's noisy cylinder (`noisy_pointCloud_example_2`), whose robust fit came to rest at ε1 =
@@ -714,7 +718,8 @@ pub fn extend_squareness(
             &state.displacement,
             &mut x,
         );
-        weighted_mean_distance(tess, &x, points, weights)
+        // The extension runs alone at the end of a fit: its distances use every core.
+        weighted_mean(&point_distances_parallel(tess, &x, points), weights)
     };
     let mut best = state.shape;
     let mut least = None;
@@ -1315,6 +1320,29 @@ pub const RESIDUAL_CANDIDATE_NODES: usize = 12;
 /// [`RESIDUAL_CANDIDATE_NODES`] nearest nodes (k-d tree), which contain it on any surface whose
 /// triangles are not much longer than the node spacing.
 pub fn point_distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) -> Vec<f64> {
+    distances(tess, node_x, points, false)
+}
+
+/// Points a run of [`point_distances_parallel`] takes: each run measures on a list of triangles
+/// seen of its own, as long as the mesh's triangle list.
+pub const PARALLEL_DISTANCES: usize = 256;
+
+/// [`point_distances`] over rayon's threads, in runs of [`PARALLEL_DISTANCES`] points: each point
+/// is measured as it is there, so the distances are the same to the bit. For the parts of a fit
+/// that run alone, the squareness extension ([`extend_squareness`]) and the residuals
+/// ([`fit_residuals`]); the hypotheses and candidates, which already run side by side, use
+/// [`point_distances`].
+pub fn point_distances_parallel(
+    tess: &Tessellation,
+    node_x: &[DVec3],
+    points: &[DVec3],
+) -> Vec<f64> {
+    distances(tess, node_x, points, true)
+}
+
+/// [`point_distances`] on one thread or, with `parallel`, over rayon's.
+fn distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3], parallel: bool) -> Vec<f64> {
+    use rayon::prelude::*;
     let tris = tess.triangles();
     // The triangles round each node, as one list with offsets (node n's are
     // `incident[first[n]..first[n + 1]]`).
@@ -1340,49 +1368,60 @@ pub fn point_distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) 
     let tree = kd_tree(node_x);
     let k = NonZero::new(RESIDUAL_CANDIDATE_NODES.min(node_x.len()).max(1))
         .unwrap_or(NonZero::<usize>::MIN);
-    // A triangle round several candidate nodes is measured once per point: `seen[t]` holds the
-    // last point (plus one) that measured it.
-    let mut seen = vec![0u32; tris.len()];
     let all_nodes: Vec<u32> = if tree.is_none() {
         (0..node_x.len() as u32).collect()
     } else {
         Vec::new()
     };
-    points
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let stamp = i as u32 + 1;
-            let mut best = f64::INFINITY;
-            let mut measure = |n: u32| {
-                let n = n as usize;
-                for &t in &incident[first[n] as usize..first[n + 1] as usize] {
-                    if seen[t as usize] == stamp {
-                        continue;
-                    }
-                    seen[t as usize] = stamp;
-                    let [a, b, c] = tris[t as usize];
-                    let q = closest_point_on_triangle(
-                        *p,
-                        node_x[a as usize],
-                        node_x[b as usize],
-                        node_x[c as usize],
-                    );
-                    best = best.min(q.distance_squared(*p));
+    // A triangle round several candidate nodes is measured once per point: `seen[t]` holds the
+    // last point (plus one) that measured it.
+    let distance = |seen: &mut Vec<u32>, (i, p): (usize, &DVec3)| {
+        let stamp = i as u32 + 1;
+        let mut best = f64::INFINITY;
+        let mut measure = |n: u32| {
+            let n = n as usize;
+            for &t in &incident[first[n] as usize..first[n + 1] as usize] {
+                if seen[t as usize] == stamp {
+                    continue;
                 }
-            };
-            match &tree {
-                Some(tree) => tree
-                    .query(&p.to_array())
-                    .nearest_n::<SquaredEuclidean<f64>>(k)
-                    .execute()
-                    .iter()
-                    .for_each(|r| measure(r.item)),
-                None => all_nodes.iter().for_each(|&n| measure(n)),
+                seen[t as usize] = stamp;
+                let [a, b, c] = tris[t as usize];
+                let q = closest_point_on_triangle(
+                    *p,
+                    node_x[a as usize],
+                    node_x[b as usize],
+                    node_x[c as usize],
+                );
+                best = best.min(q.distance_squared(*p));
             }
-            best.sqrt()
-        })
-        .collect()
+        };
+        match &tree {
+            Some(tree) => tree
+                .query(&p.to_array())
+                .nearest_n::<SquaredEuclidean<f64>>(k)
+                .execute()
+                .iter()
+                .for_each(|r| measure(r.item)),
+            None => all_nodes.iter().for_each(|&n| measure(n)),
+        }
+        best.sqrt()
+    };
+    let unseen = || vec![0u32; tris.len()];
+    if parallel {
+        points
+            .par_iter()
+            .enumerate()
+            .with_min_len(PARALLEL_DISTANCES)
+            .map_init(unseen, distance)
+            .collect()
+    } else {
+        let mut seen = unseen();
+        points
+            .iter()
+            .enumerate()
+            .map(|ip| distance(&mut seen, ip))
+            .collect()
+    }
 }
 
 /// The tessellation (k = 151, 22 803 nodes) on which [`fit_residuals`] measures a pure
@@ -1423,10 +1462,11 @@ pub fn fit_residuals(tess: &Tessellation, state: &ModelState, points: &[DVec3]) 
     residuals(tess, &x, points)
 }
 
-/// Point-to-surface residual statistics relative to the points' bounding-box diagonal.
+/// Point-to-surface residual statistics relative to the points' bounding-box diagonal, the
+/// distances measured over every core ([`point_distances_parallel`]).
 pub fn residuals(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) -> Residuals {
     Residuals::of(
-        point_distances(tess, node_x, points),
+        point_distances_parallel(tess, node_x, points),
         bounding_diagonal(points),
     )
 }
@@ -1632,6 +1672,14 @@ mod tests {
         assert_eq!(point_distances(&tess, &x, &points), brute);
         assert!(brute.iter().any(|&d| d > 0.01));
         assert!(point_distances(&tess, &x, &[]).is_empty());
+        // Over the cores, in several runs of points each with its own triangles seen: the same
+        // distances to the bit.
+        let n = 4 * points.len();
+        let many: Vec<DVec3> = points.iter().cycle().take(n).copied().collect();
+        assert!(n > 4 * PARALLEL_DISTANCES);
+        let expected: Vec<f64> = brute.iter().cycle().take(n).copied().collect();
+        assert_eq!(point_distances_parallel(&tess, &x, &many), expected);
+        assert!(point_distances_parallel(&tess, &x, &[]).is_empty());
     }
 
     /// A candidate is refined up to the margin times the chosen fit's placing distance and
