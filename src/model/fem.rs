@@ -284,51 +284,58 @@ fn apply_elements<const N: usize>(
     }
 }
 
-/// The hasher of [`edge_faces`]' map from an edge's two node indices to its first triangle: one
-/// multiply and rotate per word (the Fx hash of rustc). The standard library's SipHash, which
-/// guards maps against keys chosen by an attacker, took a third of the time of measuring a fit's
-/// residuals on the 22 803-node tessellation ([`crate::model::fit::fit_residuals`]; BENCHMARKS.md,
-/// log entry 20). Which hasher it is changes nothing but the time: the edges come out in the
-/// order of the triangles either way.
-#[derive(Default)]
-struct EdgeHasher(u64);
-
-impl std::hash::Hasher for EdgeHasher {
-    fn write(&mut self, bytes: &[u8]) {
-        bytes.iter().for_each(|&b| self.write_u64(u64::from(b)));
-    }
-
-    fn write_u32(&mut self, n: u32) {
-        self.write_u64(u64::from(n));
-    }
-
-    fn write_u64(&mut self, n: u64) {
-        self.0 = (self.0.rotate_left(5) ^ n).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-    }
-
-    fn finish(&self) -> u64 {
-        self.0
-    }
-}
-
-/// Pairs the triangles of a closed triangulation across their shared edges.
+/// Pairs the triangles of a closed triangulation across their shared edges, in the order of the
+/// triangles: each edge when its second triangle is reached, oriented as that triangle has it.
+///
+/// The edges still waiting for their second triangle are kept in a list per lower node index
+/// (each a few entries long; a pole's up to k). It replaced a `HashMap` keyed by the node pair,
+/// whose SipHash hashing and removals took a third of the time of measuring a fit's residuals on
+/// the 22 803-node tessellation ([`crate::model::fit::fit_residuals`]; BENCHMARKS.md, log entry
+/// 20); the edges are the same, in the same order.
 fn edge_faces(tris: &[[u32; 3]]) -> Vec<[u32; 4]> {
-    type Open =
-        std::collections::HashMap<(u32, u32), u32, std::hash::BuildHasherDefault<EdgeHasher>>;
-    let mut open = Open::default();
+    const END: u32 = u32::MAX;
+    let nodes = tris.iter().flatten().max().map_or(0, |&n| n as usize + 1);
+    // `head[lo]`: the first waiting edge whose lower node is `lo`; `waiting[e]`: its higher node,
+    // its first triangle and the next waiting edge of the same `lo`.
+    let mut head = vec![END; nodes];
+    let mut waiting: Vec<(u32, u32, u32)> = Vec::with_capacity(tris.len());
+    let mut free = END;
     let mut out = Vec::with_capacity(tris.len() * 3 / 2);
     for (ti, t) in tris.iter().enumerate() {
         for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
-            let key = (a.min(b), a.max(b));
-            match open.remove(&key) {
-                Some(other) => out.push([a, b, other, ti as u32]),
-                None => {
-                    open.insert(key, ti as u32);
+            let (lo, hi) = (a.min(b) as usize, a.max(b));
+            let (mut prev, mut e) = (END, head[lo]);
+            while e != END && waiting[e as usize].0 != hi {
+                (prev, e) = (e, waiting[e as usize].2);
+            }
+            if e != END {
+                let (_, other, next) = waiting[e as usize];
+                match prev {
+                    END => head[lo] = next,
+                    p => waiting[p as usize].2 = next,
                 }
+                // The slot goes on the free list for the next waiting edge.
+                waiting[e as usize].2 = free;
+                free = e;
+                out.push([a, b, other, ti as u32]);
+            } else {
+                let entry = (hi, ti as u32, head[lo]);
+                head[lo] = if free != END {
+                    let slot = free;
+                    free = waiting[slot as usize].2;
+                    waiting[slot as usize] = entry;
+                    slot
+                } else {
+                    waiting.push(entry);
+                    (waiting.len() - 1) as u32
+                };
             }
         }
     }
-    debug_assert!(open.is_empty(), "the triangulation is not closed");
+    debug_assert!(
+        head.iter().all(|&e| e == END),
+        "the triangulation is not closed"
+    );
     out
 }
 
