@@ -81,8 +81,8 @@ pub fn refine_check(distance: f64, least: f64) -> Option<f64> {
 /// [`fit`] and the plugin's fit ask after every step of the stage that did not end it: a model
 /// that runs off in length goes on running off, and was given up only at the next check of
 /// [`REFINE_CHECK_EVERY`] (BENCHMARKS.md, log entry 20: EMS's `partial_pointCloud_example_1`
-/// had one similarity candidate 2.2 times as long 100 steps into its refinement and 62 times at
-/// the check 250 steps in).
+/// had one similarity candidate 2.2 times as long 65 steps into its refinement and 62 times at
+/// the check 215 steps in).
 pub fn refine_overgrown(longest: f64, start: f64) -> bool {
     longest > REFINE_MAX_GROWTH * start
 }
