@@ -694,8 +694,8 @@ pub const EXTENDED_EPSILONS: [f64; 4] = [0.05, 0.03, 0.02, LEAST_EPSILON];
 /// exponent at that bound is asking for a squarer shape. Each such exponent (ε1, then ε2 with ε1's
 /// outcome) is tried at each of [`EXTENDED_EPSILONS`], every other parameter held, and set to the
 /// trial whose surface lies closest to `points` weighted by `weights` (the similarity switch's
-/// score, [`weighted_mean_distance`], measured over every core) if it is closer than the fit's. The shape when an exponent
-/// moved, `None` otherwise.
+/// score, [`weighted_mean_distance`], measured over every core) if it is closer than the fit's.
+/// The shape when an exponent moved, `None` otherwise.
 ///
 /// EMS's noisy cylinder (`noisy_pointCloud_example_2`), whose robust fit came to rest at ε1 =
 /// 0.1, is the case: the extension takes ε1 to 0.01 and the mean distance of the points to the
