@@ -298,8 +298,7 @@ fn edge_faces(tris: &[[u32; 3]]) -> Vec<[u32; 4]> {
     // `head[lo]`: the first waiting edge whose lower node is `lo`; `waiting[e]`: its higher node,
     // its first triangle and the next waiting edge of the same `lo`.
     let mut head = vec![END; nodes];
-    let mut waiting: Vec<(u32, u32, u32)> = Vec::with_capacity(tris.len());
-    let mut free = END;
+    let mut waiting: Vec<(u32, u32, u32)> = Vec::with_capacity(tris.len() * 3 / 2);
     let mut out = Vec::with_capacity(tris.len() * 3 / 2);
     for (ti, t) in tris.iter().enumerate() {
         for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
@@ -308,28 +307,17 @@ fn edge_faces(tris: &[[u32; 3]]) -> Vec<[u32; 4]> {
             while e != END && waiting[e as usize].0 != hi {
                 (prev, e) = (e, waiting[e as usize].2);
             }
-            if e != END {
-                let (_, other, next) = waiting[e as usize];
-                match prev {
-                    END => head[lo] = next,
-                    p => waiting[p as usize].2 = next,
-                }
-                // The slot goes on the free list for the next waiting edge.
-                waiting[e as usize].2 = free;
-                free = e;
-                out.push([a, b, other, ti as u32]);
-            } else {
-                let entry = (hi, ti as u32, head[lo]);
-                head[lo] = if free != END {
-                    let slot = free;
-                    free = waiting[slot as usize].2;
-                    waiting[slot as usize] = entry;
-                    slot
-                } else {
-                    waiting.push(entry);
-                    (waiting.len() - 1) as u32
-                };
+            if e == END {
+                waiting.push((hi, ti as u32, head[lo]));
+                head[lo] = (waiting.len() - 1) as u32;
+                continue;
             }
+            let (_, other, next) = waiting[e as usize];
+            match prev {
+                END => head[lo] = next,
+                p => waiting[p as usize].2 = next,
+            }
+            out.push([a, b, other, ti as u32]);
         }
     }
     debug_assert!(
