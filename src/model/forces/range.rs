@@ -749,39 +749,56 @@ impl RangeForces {
         };
         let m = self.points.len();
         // Each point moves on its own, so the points may go over the cores; every point's
-        // result is the same on any thread.
-        let run = if self.parallel {
-            PARALLEL_MIGRATION
-        } else {
-            usize::MAX
-        };
+        // result is the same on any thread. Without `parallel` the loop stays on the calling
+        // thread: a rayon loop called from outside rayon's pool would run on the pool's threads
+        // and make the similarity candidates, each on a thread of its own, queue there.
+        let parallel = self.parallel;
         let (points, influence) = (&self.points, &mut self.influence);
         match surface {
             Some(s) => {
                 self.surface_offset.resize(m, DVec3::ZERO);
                 self.surface_terms
                     .resize(m, SurfaceTerms::new(f64::NAN, f64::NAN));
-                points
-                    .par_iter()
-                    .zip(influence.par_iter_mut())
-                    .zip(self.surface_terms.par_iter_mut())
-                    .zip(self.surface_offset.par_iter_mut())
-                    .with_min_len(run)
-                    .for_each(|(((r, inf), kept), offset)| {
-                        let foot = migrate_point(*r, inf, Some((s, kept)), tess, node_x, rate);
-                        *offset = foot - inf.at.interpolate(|k| node_x[k]);
-                    });
+                let (terms, offsets) = (&mut self.surface_terms, &mut self.surface_offset);
+                let one = |(((r, inf), kept), offset): (
+                    ((&DVec3, &mut Influence), &mut SurfaceTerms),
+                    &mut DVec3,
+                )| {
+                    let foot = migrate_point(*r, inf, Some((s, kept)), tess, node_x, rate);
+                    *offset = foot - inf.at.interpolate(|k| node_x[k]);
+                };
+                if parallel {
+                    points
+                        .par_iter()
+                        .zip(influence.par_iter_mut())
+                        .zip(terms.par_iter_mut())
+                        .zip(offsets.par_iter_mut())
+                        .with_min_len(PARALLEL_MIGRATION)
+                        .for_each(one);
+                } else {
+                    points
+                        .iter()
+                        .zip(influence.iter_mut())
+                        .zip(terms.iter_mut())
+                        .zip(offsets.iter_mut())
+                        .for_each(one);
+                }
             }
             None => {
                 self.surface_offset.clear();
                 self.surface_terms.clear();
-                points
-                    .par_iter()
-                    .zip(influence.par_iter_mut())
-                    .with_min_len(run)
-                    .for_each(|(r, inf)| {
-                        migrate_point(*r, inf, None, tess, node_x, rate);
-                    });
+                let one = |(r, inf): (&DVec3, &mut Influence)| {
+                    migrate_point(*r, inf, None, tess, node_x, rate);
+                };
+                if parallel {
+                    points
+                        .par_iter()
+                        .zip(influence.par_iter_mut())
+                        .with_min_len(PARALLEL_MIGRATION)
+                        .for_each(one);
+                } else {
+                    points.iter().zip(influence.iter_mut()).for_each(one);
+                }
             }
         }
     }
