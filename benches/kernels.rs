@@ -77,16 +77,26 @@ fn step_once(
 
 fn euler_step(c: &mut Criterion) {
     let mut g = c.benchmark_group("euler_step");
-    for (k, m) in [(71, 5000), (31, 1000), (100, 10_000), (316, 100_000)] {
+    let explicit = [(71, 5000), (31, 1000), (100, 10_000), (316, 100_000)].map(|c| (c, false));
+    // The implicit membrane (`DynamicsParams::implicit_local`) with a fitter's γ_d = 0.01.
+    let implicit = [(71, 5000), (31, 1000)].map(|c| (c, true));
+    for ((k, m), implicit_local) in explicit.into_iter().chain(implicit) {
         let (tess, state, range) = attached(k, m);
         let params = DynamicsParams {
             dt: 0.01,
+            implicit_local,
+            gamma_local: if implicit_local { 0.01 } else { 1.0 },
             ..Default::default()
+        };
+        let name = if implicit_local {
+            "implicit_local"
+        } else {
+            "nodes_points"
         };
         let (mut forces, mut ws) = (NodalForces::new(tess.node_count()), Workspace::default());
         let mut s = state.clone();
         g.bench_with_input(
-            BenchmarkId::new("nodes_points", format!("{}n_{m}p", tess.node_count())),
+            BenchmarkId::new(name, format!("{}n_{m}p", tess.node_count())),
             &(),
             |b, _| {
                 b.iter(|| {

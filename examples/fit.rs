@@ -6,7 +6,7 @@
 //!     [--out-params FILE.json] [--quiet]
 //!     points only: [--global-only] [--paper-forces] [--plane] [--outliers F] [--refine] [--switch]
 //!                  [--similar] [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper]
-//!                  [--bend]
+//!                  [--bend] [--implicit-local GAMMA]
 //!     images only: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth]
 //!                  [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]
 //!     scenes only: [--out-scene FILE.dsq.ron]
@@ -32,6 +32,9 @@
 //! other flags add. `--outliers`, `--w0` and `--w1` given explicitly are kept.
 //! `--taper` and `--bend` free the global tapering and bending of `model::deform` (beyond the paper)
 //! for curved, tapered objects; the summary then carries `taper` and `bend`.
+//! `--implicit-local GAMMA` takes the membrane's update as one backward-Euler step solved by
+//! conjugate gradients with local damping γ_d = GAMMA (`DynamicsParams::implicit_local`, beyond
+//! the paper; e.g. 0.01): fewer joint steps, each dearer (BENCHMARKS.md, log entry 23).
 //! Bad input exits with code 2 and a one-line message.
 
 use bevy::math::{DVec2, DVec3};
@@ -62,7 +65,7 @@ use std::time::Duration;
 use std::time::Instant;
 
 const USAGE: &str = "usage: fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [--nodes N | --k K] [--w0 F] [--w1 F|auto] [--beta F] \
-[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--paper-forces] [--plane] [--outliers F] [--refine] [--switch] [--similar] [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend]; \
+[--max-steps N] [--out-mesh FILE.obj] [--out-params FILE.json] [--quiet]; points: [--global-only] [--paper-forces] [--plane] [--outliers F] [--refine] [--switch] [--similar] [--robust] [--migrate] [--reassign N] [--parts N] [--app] [--taper] [--bend] [--implicit-local GAMMA]; \
 images: [--sigma PX] [--band F] [--region F] [--paper-band] [--free-depth] [--part x0,y0,x1,y1,x2,y2,x3,y3]... [--parts N] [--out-overlay FILE.png]; scenes: [--out-scene FILE.dsq.ron]";
 
 /// Where the data come from.
@@ -247,6 +250,16 @@ fn parse_args() -> Result<(Args, Option<Vec<DVec3>>), String> {
                     .ok_or(format!("--outliers {v}: expected a fraction in [0, 1)"))?;
             }
             "--migrate" => o.influence = InfluenceMode::Migrating { rate: 0.5 },
+            "--implicit-local" => {
+                o.dynamics.implicit_local = true;
+                o.dynamics.gamma_local = value(&a, args.next())?;
+                if !(o.dynamics.gamma_local > 0.0) {
+                    return Err(format!(
+                        "--implicit-local {}: expected a local damping γ_d > 0",
+                        o.dynamics.gamma_local
+                    ));
+                }
+            }
             "--quiet" => quiet = true,
             "--app" => app = true,
             "--out-mesh" => {

@@ -568,6 +568,80 @@ impl Tessellation {
         rows
     }
 
+    /// The diagonal of K_dd: K_ii for every node.
+    pub fn stiffness_diagonal(&self, w0: f64, w1: f64) -> Vec<f64> {
+        let mut diag = vec![0.0; self.node_count()];
+        self.for_each_element(|nodes, (g, m)| {
+            for (a, &n) in nodes.iter().enumerate() {
+                diag[n as usize] += w1 * g[a][a] + w0 * m[a][a];
+            }
+        });
+        diag
+    }
+
+    /// Solves (diag(`shift`) + K_dd) x = b for the three displacement components at once by
+    /// conjugate gradients preconditioned with the diagonal (`shift` + `k_diagonal`, the latter
+    /// from [`Tessellation::stiffness_diagonal`]), from the `x` given (a warm start) until each
+    /// component's residual is at most `tolerance` times its |b|, or `max_iterations`. The matrix
+    /// is symmetric positive definite when w0 > 0 or some shift is positive. Returns the
+    /// iterations taken.
+    #[allow(clippy::too_many_arguments)]
+    pub fn solve_shifted(
+        &self,
+        (w0, w1): (f64, f64),
+        shift: &[f64],
+        k_diagonal: &[f64],
+        b: &[DVec3],
+        x: &mut [DVec3],
+        (tolerance, max_iterations): (f64, u32),
+        cg: &mut CgScratch,
+    ) -> u32 {
+        let n = self.node_count();
+        let apply = |v: &[DVec3], out: &mut Vec<DVec3>| {
+            out.clear();
+            out.extend(v.iter().zip(shift).map(|(v, s)| *s * *v));
+            self.apply_stiffness(w0, w1, v, out);
+        };
+        let sum = |a: &[DVec3], b: &[DVec3]| a.iter().zip(b).map(|(a, b)| *a * *b).sum::<DVec3>();
+        let inv_p: Vec<f64> = shift
+            .iter()
+            .zip(k_diagonal)
+            .map(|(s, k)| if s + k > 0.0 { 1.0 / (s + k) } else { 0.0 })
+            .collect();
+        let bound = tolerance * tolerance * sum(b, b);
+        apply(&*x, &mut cg.ap);
+        cg.r.clear();
+        cg.r.extend(b.iter().zip(&cg.ap).map(|(b, a)| *b - *a));
+        cg.z.clear();
+        cg.z.extend(cg.r.iter().zip(&inv_p).map(|(r, p)| *p * *r));
+        cg.p.clear();
+        cg.p.extend_from_slice(&cg.z);
+        let mut rz = sum(&cg.r, &cg.z);
+        let mut iterations = 0;
+        while iterations < max_iterations {
+            let rr = sum(&cg.r, &cg.r);
+            if rr.cmple(bound).all() {
+                break;
+            }
+            iterations += 1;
+            apply(&cg.p, &mut cg.ap);
+            let pap = sum(&cg.p, &cg.ap);
+            let alpha = DVec3::select(pap.cmpgt(DVec3::ZERO), rz / pap, DVec3::ZERO);
+            for i in 0..n {
+                x[i] += alpha * cg.p[i];
+                cg.r[i] -= alpha * cg.ap[i];
+                cg.z[i] = inv_p[i] * cg.r[i];
+            }
+            let rz_new = sum(&cg.r, &cg.z);
+            let beta = DVec3::select(rz.cmpgt(DVec3::ZERO), rz_new / rz, DVec3::ZERO);
+            rz = rz_new;
+            for (p, z) in cg.p.iter_mut().zip(&cg.z) {
+                *p = *z + beta * *p;
+            }
+        }
+        iterations
+    }
+
     /// Wraps any (u, v) onto the domain u ∈ [−π/2, π/2], v ∈ [−π, π): a u past a pole comes back
     /// on the other side of it, half a turn round in v.
     pub fn wrap(u: f64, v: f64) -> (f64, f64) {
@@ -662,6 +736,15 @@ impl Tessellation {
     }
 }
 
+/// The work vectors of [`Tessellation::solve_shifted`], kept between solves.
+#[derive(Clone, Debug, Default)]
+pub struct CgScratch {
+    r: Vec<DVec3>,
+    z: Vec<DVec3>,
+    p: Vec<DVec3>,
+    ap: Vec<DVec3>,
+}
+
 /// Adds w₋ x_(j−1) + w₀ x_j + w₊ x_(j+1) to `out[j]` round one ring (j ± 1 wrapping): one row of
 /// [`Tessellation::apply_stiffness`]'s 9-point stencil, `w` = [w₋, w₀, w₊].
 #[inline(always)]
@@ -689,6 +772,66 @@ fn period(x: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A smooth but irregular field over the nodes.
+    fn field(n: usize, seed: f64) -> Vec<DVec3> {
+        (0..n)
+            .map(|i| {
+                let t = i as f64 + seed;
+                DVec3::new((t * 0.7).sin(), (t * 1.3).cos(), (t * 0.4 + 1.0).sin())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn stiffness_diagonal_is_k_applied_to_unit_vectors() {
+        let t = Tessellation::new(9);
+        let (w0, w1) = (0.02, 0.7);
+        let diag = t.stiffness_diagonal(w0, w1);
+        let n = t.node_count();
+        for i in [0, 1, 5, 17, n / 2, n - 2, n - 1] {
+            let mut e = vec![DVec3::ZERO; n];
+            e[i] = DVec3::ONE;
+            let mut ke = vec![DVec3::ZERO; n];
+            t.apply_stiffness(w0, w1, &e, &mut ke);
+            assert!((ke[i].x - diag[i]).abs() <= 1e-12 * diag[i], "node {i}");
+            assert!(diag[i] > 0.0);
+        }
+    }
+
+    #[test]
+    fn shifted_solve_satisfies_its_system_and_stops_at_once_from_the_answer() {
+        let t = Tessellation::new(12);
+        let n = t.node_count();
+        let (w0, w1) = (0.01, 0.5);
+        // Springs on a third of the nodes, damping nowhere: the membrane alone holds the rest.
+        let shift: Vec<f64> = (0..n).map(|i| if i % 3 == 0 { 0.3 } else { 0.0 }).collect();
+        let diag = t.stiffness_diagonal(w0, w1);
+        let b = field(n, 0.5);
+        let mut x = vec![DVec3::ZERO; n];
+        let mut cg = CgScratch::default();
+        let tol = 1e-12;
+        let iterations = t.solve_shifted((w0, w1), &shift, &diag, &b, &mut x, (tol, 5000), &mut cg);
+        assert!(
+            iterations > 0 && iterations < 5000,
+            "{iterations} iterations"
+        );
+        let mut mx: Vec<DVec3> = x.iter().zip(&shift).map(|(x, s)| *s * *x).collect();
+        t.apply_stiffness(w0, w1, &x, &mut mx);
+        let residual = mx
+            .iter()
+            .zip(&b)
+            .map(|(m, b)| (*m - *b).abs())
+            .sum::<DVec3>();
+        let size = b.iter().map(|b| b.abs()).sum::<DVec3>();
+        assert!(
+            residual.max_element() <= 1e-9 * size.max_element(),
+            "{residual}"
+        );
+        // Warm-started at the answer: nothing to do.
+        let again = t.solve_shifted((w0, w1), &shift, &diag, &b, &mut x, (1e-6, 5000), &mut cg);
+        assert_eq!(again, 0);
+    }
 
     #[test]
     fn every_edge_has_two_triangles_that_contain_it() {

@@ -599,6 +599,7 @@ pub fn step(
         dt_critical,
         clamped,
         trust_limited: false,
+        local_iterations: 0,
     })
 }
 

@@ -226,6 +226,10 @@ pub struct ModelSettings {
     /// Let the bending coordinates of [`GlobalShape::bend`] move (beyond the paper).
     #[cfg_attr(feature = "serialize", serde(default))]
     pub bend: bool,
+    /// Take the membrane's update implicitly, stable at any Δt
+    /// ([`DynamicsParams::implicit_local`], beyond the paper).
+    #[cfg_attr(feature = "serialize", serde(default))]
+    pub implicit_local: bool,
 }
 
 impl Default for ModelSettings {
@@ -259,6 +263,7 @@ impl ModelSettings {
             planar: d.free.planar,
             taper: d.free.taper,
             bend: d.free.bend,
+            implicit_local: d.implicit_local,
         }
     }
 
@@ -280,6 +285,7 @@ impl ModelSettings {
             gamma_global: self.gamma_global,
             gamma_local: self.gamma_local,
             free,
+            implicit_local: self.implicit_local,
             ..DynamicsParams::default()
         }
     }

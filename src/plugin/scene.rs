@@ -163,6 +163,7 @@ pub fn part_settings(part: &PartDef) -> ModelSettings {
         planar: part.planar(),
         taper: part.free.taper,
         bend: part.free.bend,
+        implicit_local: d.implicit_local,
     }
 }
 
