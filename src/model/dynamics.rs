@@ -472,7 +472,7 @@ pub struct DynamicsParams {
     pub ridge: f64,
     /// Which degrees of freedom move.
     pub free: FreeDofs,
-    /// Take the local block as one backward-Euler step, (γ_d A/Δt + κ + K) d⁺ =
+    /// Take the local block of eq. (15) as one backward-Euler step, (γ_d A/Δt + κ + K) d⁺ =
     /// (γ_d A/Δt + κ) d + f, solved by conjugate gradients ([`Tessellation::solve_shifted`]) after the global
     /// update, with the nodal forces moved to the new pose (F_i − κ_i Δx_i, exact for springs on
     /// nodes): stable at any Δt, and with a small γ_d close to the membrane's rest in one step
@@ -1030,16 +1030,24 @@ pub const IMPLICIT_LOCAL_TOLERANCE: f64 = 1e-6;
 /// Conjugate-gradient iterations the implicit local solve takes at most.
 pub const IMPLICIT_LOCAL_MAX_ITERATIONS: u32 = 2000;
 
-/// The local block as one backward-Euler step ([`DynamicsParams::implicit_local`]), from
-/// `state.displacement` into `ws.new_d`; returns the solver's iterations.
+/// The local block of eq. (15) as one backward-Euler step ([`DynamicsParams::implicit_local`]),
+/// from `displacement` into `ws.new_d` (its warm start), at the pose of `rotation`. With
+/// `before`, the nodes have moved from there to `ws.world` since the forces were gathered, and
+/// each node's force is moved with them: F_i − κ_i Δx_i. Returns the solver's iterations.
 fn implicit_local_step(
     tess: &Tessellation,
     displacement: &[DVec3],
-    forces: &NodalForces,
+    (forces, rotation, before): (&NodalForces, DQuat, Option<&[DVec3]>),
     params: &DynamicsParams,
     ws: &mut Workspace,
 ) -> u32 {
     let n = tess.node_count();
+    let rt = rotation_matrix(rotation).transpose();
+    ws.local_force.clear();
+    ws.local_force.extend((0..n).map(|i| {
+        let moved = before.map_or(DVec3::ZERO, |b| ws.world[i] - b[i]);
+        rt * (forces.force[i] - forces.stiffness[i] * moved)
+    }));
     let (w0, w1) = (params.w0, params.w1);
     let key = (w0, w1, n);
     if ws.k_diagonal_key != Some(key) {
@@ -1294,11 +1302,13 @@ pub fn step_prepared(
     }
 
     if implicit && delta.iter().all(|&x| x == 0.0) {
-        let rt = rotation_matrix(state.rotation).transpose();
-        ws.local_force.clear();
-        ws.local_force.extend(forces.force.iter().map(|f| rt * *f));
-        report.local_iterations =
-            implicit_local_step(tess, &state.displacement, forces, params, ws);
+        report.local_iterations = implicit_local_step(
+            tess,
+            &state.displacement,
+            (forces, state.rotation, None),
+            params,
+            ws,
+        );
     }
     if delta.iter().all(|&x| x == 0.0) {
         // No global force: the global DOFs stay exactly where they are (no renormalisation drift).
@@ -1333,19 +1343,21 @@ pub fn step_prepared(
         displacement: std::mem::take(&mut ws.new_d),
     };
     if implicit {
-        // Gauss–Seidel: the springs' forces moved to the new pose (exact for springs on
-        // nodes, F_i − κ_i Δx_i), then the membrane solved there.
-        ws.kd.clear();
-        ws.kd.extend_from_slice(&ws.world);
+        // Gauss–Seidel: the membrane solved at the new pose, the springs' forces moved there.
+        // The positions before go into `kd`, which only the explicit update uses.
+        let mut before = std::mem::take(&mut ws.kd);
+        before.clear();
+        before.extend_from_slice(&ws.world);
         ws.prepare(tess, &new);
-        let rt = rotation_matrix(new.rotation).transpose();
-        ws.local_force.clear();
-        ws.local_force.extend(
-            (0..n).map(|i| rt * (forces.force[i] - forces.stiffness[i] * (ws.world[i] - ws.kd[i]))),
-        );
         ws.new_d = std::mem::take(&mut new.displacement);
-        report.local_iterations =
-            implicit_local_step(tess, &state.displacement, forces, params, ws);
+        report.local_iterations = implicit_local_step(
+            tess,
+            &state.displacement,
+            (forces, new.rotation, Some(&before)),
+            params,
+            ws,
+        );
+        ws.kd = before;
         new.displacement = std::mem::take(&mut ws.new_d);
     }
     if !new.is_finite() {

@@ -603,17 +603,20 @@ impl Tessellation {
             self.apply_stiffness(w0, w1, v, out);
         };
         let sum = |a: &[DVec3], b: &[DVec3]| a.iter().zip(b).map(|(a, b)| *a * *b).sum::<DVec3>();
-        let inv_p: Vec<f64> = shift
-            .iter()
-            .zip(k_diagonal)
-            .map(|(s, k)| if s + k > 0.0 { 1.0 / (s + k) } else { 0.0 })
-            .collect();
+        cg.inv_p.clear();
+        cg.inv_p.extend(
+            shift
+                .iter()
+                .zip(k_diagonal)
+                .map(|(s, k)| if s + k > 0.0 { 1.0 / (s + k) } else { 0.0 }),
+        );
+        let inv_p = &cg.inv_p;
         let bound = tolerance * tolerance * sum(b, b);
         apply(&*x, &mut cg.ap);
         cg.r.clear();
         cg.r.extend(b.iter().zip(&cg.ap).map(|(b, a)| *b - *a));
         cg.z.clear();
-        cg.z.extend(cg.r.iter().zip(&inv_p).map(|(r, p)| *p * *r));
+        cg.z.extend(cg.r.iter().zip(inv_p).map(|(r, p)| *p * *r));
         cg.p.clear();
         cg.p.extend_from_slice(&cg.z);
         let mut rz = sum(&cg.r, &cg.z);
@@ -739,6 +742,7 @@ impl Tessellation {
 /// The work vectors of [`Tessellation::solve_shifted`], kept between solves.
 #[derive(Clone, Debug, Default)]
 pub struct CgScratch {
+    inv_p: Vec<f64>,
     r: Vec<DVec3>,
     z: Vec<DVec3>,
     p: Vec<DVec3>,
