@@ -1012,7 +1012,15 @@ fn inspector(
                     .text("Δt"),
             );
             ui.add(edit_slider(&mut s.reassign_every, 1..=1000).text("reassign every"));
-            ui.checkbox(&mut s.global_only, "global only");
+            ui.horizontal(|ui| {
+                ui.checkbox(&mut s.global_only, "global only");
+                // The membrane as one conjugate-gradient solve a step (DynamicsParams::
+                // implicit_local): stable at any Δt, so Δt can go up without sub-steps.
+                ui.checkbox(&mut s.implicit_local, "implicit membrane")
+                    .on_hover_text(
+                        "one backward-Euler solve of the local DOFs a step: stable at any Δt",
+                    );
+            });
             ui.horizontal(|ui| {
                 ui.checkbox(&mut s.fix_epsilon, "fix ε");
                 ui.checkbox(&mut s.fix_shape, "fix shape (rigid)");
