@@ -1018,7 +1018,8 @@ fn inspector(
                 // implicit_local): stable at any Δt, so Δt can go up without sub-steps.
                 ui.checkbox(&mut s.implicit_local, "implicit membrane")
                     .on_hover_text(
-                        "one backward-Euler solve of the local DOFs a step: stable at any Δt",
+                        "one backward-Euler solve of the local DOFs a step: stable at any Δt \
+                         (first-order dynamics; ignored with inertia)",
                     );
             });
             ui.horizontal(|ui| {

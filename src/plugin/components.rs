@@ -227,7 +227,9 @@ pub struct ModelSettings {
     #[cfg_attr(feature = "serialize", serde(default))]
     pub bend: bool,
     /// Take the membrane's update implicitly, stable at any Δt
-    /// ([`DynamicsParams::implicit_local`], beyond the paper).
+    /// ([`DynamicsParams::implicit_local`], beyond the paper). First-order dynamics only: a model
+    /// with [`Inertia`] takes the second-order step, which has no implicit membrane, and ignores
+    /// this.
     #[cfg_attr(feature = "serialize", serde(default))]
     pub implicit_local: bool,
 }
