@@ -549,9 +549,9 @@ pub struct Workspace {
     new_d: Vec<DVec3>,
     /// Each node's sub-step factor h / (γ A_i + h κ_i), so a sub-step divides nothing.
     substep_scale: Vec<f64>,
-    row_bounds: Vec<f64>,
-    inv_area: Vec<f64>,
-    row_bounds_key: Option<(f64, f64, usize)>,
+    /// max_i Σ_j |K_ij| / A_i (Gershgorin) for the stiffness weights and node count of the key.
+    max_rate: f64,
+    max_rate_key: Option<(f64, f64, usize)>,
     k_diagonal: Vec<f64>,
     k_diagonal_key: Option<(f64, f64, usize)>,
     shift: Vec<f64>,
@@ -587,14 +587,20 @@ impl Workspace {
         &self.world
     }
 
-    fn row_bounds(&mut self, tess: &Tessellation, w0: f64, w1: f64) -> (&[f64], &[f64]) {
+    /// The largest eigenvalue bound of the lumped membrane A⁻¹K, max_i Σ_j |K_ij| / A_i,
+    /// computed once per tessellation and stiffness weights.
+    fn max_rate(&mut self, tess: &Tessellation, w0: f64, w1: f64) -> f64 {
         let key = (w0, w1, tess.node_count());
-        if self.row_bounds_key != Some(key) {
-            self.row_bounds = tess.stiffness_row_bounds(w0, w1);
-            self.inv_area = tess.node_area.iter().map(|a| 1.0 / a).collect();
-            self.row_bounds_key = Some(key);
+        if self.max_rate_key != Some(key) {
+            let rows = tess.stiffness_row_bounds(w0, w1);
+            self.max_rate = rows
+                .iter()
+                .zip(&tess.node_area)
+                .map(|(r, a)| r * (1.0 / a))
+                .fold(0.0_f64, f64::max);
+            self.max_rate_key = Some(key);
         }
-        (&self.row_bounds, &self.inv_area)
+        self.max_rate
     }
 }
 
@@ -834,10 +840,89 @@ fn global_system_general(
     (c, f, kappa_sum + plane_sum)
 }
 
+/// Sums over the nodes of one ring of the stiffness and force terms whose longitude factors
+/// (cos^ε2 v, sin^ε2 v and their logs) vary along the ring; the ring's own factors multiply them
+/// once when the ring is folded into the moments ([`RingSums::fold`]).
+#[derive(Default)]
+struct RingSums {
+    /// Σ κ, and Σ κ p.
+    k: f64,
+    kp: DVec3,
+    /// Σ κ C, Σ κ C ln|C|, Σ κ C², Σ κ C² ln|C|, Σ κ C² ln²|C| for C = cos^ε2 v ([0]) and
+    /// C = sin^ε2 v ([1]).
+    kc: [[f64; 5]; 2],
+    /// Σ κ C p and Σ κ C ln|C| p, for the same two C.
+    kcp: [[DVec3; 2]; 2],
+    /// Σ C (RᵀF)_x, Σ C ln|C| (RᵀF)_x for C = cos^ε2 v; the same for sin^ε2 v and (RᵀF)_y;
+    /// and Σ (RᵀF)_z.
+    fc: [[f64; 2]; 2],
+    fz: f64,
+}
+
+/// The moments of the global system that [`global_system_superquadric`] assembles the 13 × 13
+/// system from, per J component c: `mm[c]` = Σ κ base_c² φ_c φ_cᵀ (packed xx, xy, xz, yy, yz,
+/// zz), `v[c]` = Σ κ base_c φ_c, `w[c][d]` = Σ κ p_d base_c φ_c, `fs[c]` = Σ base_c (RᵀF)_c φ_c.
+#[derive(Default)]
+struct Moments {
+    mm: [[f64; 6]; 3],
+    v: [[f64; 3]; 3],
+    w: [[[f64; 3]; 3]; 3],
+    fs: [[f64; 3]; 3],
+}
+
+impl RingSums {
+    /// Adds this ring's sums to `m`, for a ring with (cos^ε1 u, sin^ε1 u) = `(cu, su)` and logs
+    /// `(ln_cu, ln_su)`. Components x and y have base cu C and φ = (1, ln|cos u|, ln|C|);
+    /// component z has base su and φ = (1, ln|sin u|, 0).
+    fn fold(&self, [cu, su]: [f64; 2], [ln_cu, ln_su]: [f64; 2], m: &mut Moments) {
+        for c in 0..2 {
+            let [s1, s1l, s2, s2l, s2ll] = self.kc[c];
+            let cu2 = cu * cu;
+            add(&mut m.v[c], cu, [s1, ln_cu * s1, s1l]);
+            add(
+                &mut m.mm[c],
+                cu2,
+                [s2, ln_cu * s2, s2l, ln_cu * ln_cu * s2, ln_cu * s2l, s2ll],
+            );
+            let [p1, p1l] = self.kcp[c];
+            for d in 0..3 {
+                add(&mut m.w[c][d], cu, [p1[d], ln_cu * p1[d], p1l[d]]);
+            }
+            let [f1, f1l] = self.fc[c];
+            add(&mut m.fs[c], cu, [f1, ln_cu * f1, f1l]);
+        }
+        let k = self.k;
+        add(&mut m.v[2], su, [k, ln_su * k, 0.0]);
+        add(
+            &mut m.mm[2],
+            su * su,
+            [k, ln_su * k, 0.0, ln_su * ln_su * k, 0.0, 0.0],
+        );
+        for d in 0..3 {
+            let p = self.kp[d];
+            add(&mut m.w[2][d], su, [p, ln_su * p, 0.0]);
+        }
+        add(&mut m.fs[2], su, [self.fz, ln_su * self.fz, 0.0]);
+    }
+}
+
+/// `acc += scale · terms`, element by element.
+#[inline(always)]
+fn add<const N: usize>(acc: &mut [f64; N], scale: f64, terms: [f64; N]) {
+    for (a, t) in acc.iter_mut().zip(terms) {
+        *a += scale * t;
+    }
+}
+
 /// Accumulates the stiffness-weighted Gram matrix Σ κ_i L_iᵀ L_i and the generalized forces
 /// Σ L_iᵀ F_i of a plain superquadric (q_T = 0), using the block structure of L = [I, −R p̃ G, R J] and the per-component structure
-/// of J ([`jacobian_coefficients`]): each node adds to ~70 moments (about 130 flops), and the
-/// 13 × 13 system is assembled from them once.
+/// of J ([`jacobian_coefficients`]). The x and y components of J's columns are products of a
+/// ring's factor (cos^ε1 u and its log) and a longitude's (cos^ε2 v or sin^ε2 v and its log), the
+/// z components depend on the ring alone; so each node adds to the 31 sums of its ring
+/// ([`RingSums`]) and to the 12 moments of the rigid block Σ κ p pᵀ, Σ F, Σ p × RᵀF (about 100
+/// flops a node, 130 before the ring sums), each ring's sums become the moments of J
+/// ([`Moments`]) once, and the 13 × 13 system is assembled from the moments once. The
+/// point-to-plane springs add ρ g gᵀ node by node.
 fn global_system_superquadric(
     tess: &Tessellation,
     state: &ModelState,
@@ -847,35 +932,97 @@ fn global_system_superquadric(
     let r = rotation_matrix(state.rotation);
     let rt = r.transpose();
     let g = g_matrix(state.rotation);
+    let alpha = jacobian_coefficients(&state.shape);
     let mut kappa_sum = 0.0;
     let mut kp = DVec3::ZERO; // Σ κ p
     let mut kpp = [0.0; 6]; // Σ κ p pᵀ, packed (xx, xy, xz, yy, yz, zz)
     let mut f_c = DVec3::ZERO;
     let mut torque = DVec3::ZERO; // Σ p × RᵀF (model frame)
-    // Moments, per J component c: mm[c] = Σ κ base_c² φ_c φ_cᵀ (packed), v[c] = Σ κ base_c φ_c,
-    // w[c][d] = Σ κ p_d base_c φ_c, fs[c] = Σ base_c (RᵀF)_c φ_c.
-    let mut mm = [[0.0; 6]; 3];
-    let mut v = [[0.0; 3]; 3];
-    let mut w = [[[0.0; 3]; 3]; 3];
-    let mut fs = [[0.0; 3]; 3];
-    let alpha = jacobian_coefficients(&state.shape);
-    let mut plane_gram = [[0.0; NUM_GLOBAL]; NUM_GLOBAL]; // Σ ρ g gᵀ, upper triangle
+    let mut moments = Moments::default();
+    let (k, grid) = (tess.k, &ws.grid);
+    // Ring by ring (the poles are rings of one node): the terms that vary along a ring are
+    // summed over it, and its cos^ε1 u, sin^ε1 u and their logs multiply the sums once.
+    for ring in 0..k + 2 {
+        // The ring's nodes, and their longitudes' powers and logs (a pole's own, at v = 0).
+        let (nodes, lon_powers, lon_trig) = match ring {
+            0 => (0..1, &grid.poles[..1], &tess.trig[..1]),
+            r if r > k => {
+                let np = tess.north_pole();
+                (np..np + 1, &grid.poles[1..], &tess.trig[np..np + 1])
+            }
+            r => (
+                1 + (r - 1) * k..1 + r * k,
+                &grid.longitudes[..],
+                &tess.trig[1..=k],
+            ),
+        };
+        let mut sums = RingSums::default();
+        let node_terms = forces.force[nodes.clone()]
+            .iter()
+            .zip(&forces.shape_force[nodes.clone()])
+            .zip(&forces.stiffness[nodes.clone()])
+            .zip(&forces.shape_stiffness[nodes.clone()])
+            .zip(&ws.points[nodes])
+            .zip(lon_powers.iter().zip(lon_trig));
+        for (((((f, shape_f), kappa), shape_kappa), p), ([cv, sv], t)) in node_terms {
+            let (f, kappa, p) = (*f + *shape_f, kappa + shape_kappa, *p);
+            let fm = rt * f;
+            f_c += f;
+            torque += p.cross(fm);
+            let kp_i = kappa * p;
+            add(
+                &mut kpp,
+                1.0,
+                [
+                    kp_i.x * p.x,
+                    kp_i.x * p.y,
+                    kp_i.x * p.z,
+                    kp_i.y * p.y,
+                    kp_i.y * p.z,
+                    kp_i.z * p.z,
+                ],
+            );
+            sums.k += kappa;
+            sums.kp += kp_i;
+            for (c, (lon_c, ln_c, fm_c)) in [(*cv, t.ln_cv, fm.x), (*sv, t.ln_sv, fm.y)]
+                .into_iter()
+                .enumerate()
+            {
+                let kc = kappa * lon_c;
+                let kcl = kc * ln_c;
+                let kccl = kcl * lon_c;
+                add(
+                    &mut sums.kc[c],
+                    1.0,
+                    [kc, kcl, kc * lon_c, kccl, kccl * ln_c],
+                );
+                sums.kcp[c][0] += kc * p;
+                sums.kcp[c][1] += kcl * p;
+                let fc = lon_c * fm_c;
+                add(&mut sums.fc[c], 1.0, [fc, fc * ln_c]);
+            }
+            sums.fz += fm.z;
+        }
+        sums.fold(grid.rings[ring], tess.grid_logs(ring, None).0, &mut moments);
+        kappa_sum += sums.k;
+        kp += sums.kp;
+    }
+    // Point-to-plane springs: ρ g gᵀ for g = L_iᵀ n = (n, Gᵀ (p × Rᵀn), Jᵀ Rᵀn), upper triangle.
+    let mut plane_gram = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
     let mut plane_sum = 0.0;
-    for_each_forced_node(tess, ws, forces, |node| {
-        let ForcedNode {
-            i,
-            f,
-            kappa,
-            rho,
-            p,
-            base,
-            phi,
-        } = *node;
-        let fm = rt * f;
-        f_c += f;
-        torque += p.cross(fm);
-        if rho != 0.0 {
-            // g = L_iᵀ n = (n, Gᵀ (p × Rᵀn), Jᵀ Rᵀn), added as ρ g gᵀ.
+    if forces.plane_stiffness.len() == forces.force.len() {
+        for_each_forced_node(tess, ws, forces, |node| {
+            let ForcedNode {
+                i,
+                rho,
+                p,
+                base,
+                phi,
+                ..
+            } = *node;
+            if rho == 0.0 {
+                return;
+            }
             let n = forces.plane_normal[i];
             let m = rt * n;
             let pm = p.cross(m);
@@ -897,47 +1044,9 @@ fn global_system_superquadric(
                 }
             }
             plane_sum += rho;
-        }
-        let fma = fm.to_array();
-        for c in 0..3 {
-            let s = base[c] * fma[c];
-            for e in 0..3 {
-                fs[c][e] += s * phi[c][e];
-            }
-        }
-        if kappa != 0.0 {
-            kappa_sum += kappa;
-            kp += kappa * p;
-            let pa = p.to_array();
-            kpp[0] += kappa * pa[0] * pa[0];
-            kpp[1] += kappa * pa[0] * pa[1];
-            kpp[2] += kappa * pa[0] * pa[2];
-            kpp[3] += kappa * pa[1] * pa[1];
-            kpp[4] += kappa * pa[1] * pa[2];
-            kpp[5] += kappa * pa[2] * pa[2];
-            for c in 0..3 {
-                let kb = kappa * base[c];
-                let ph = &phi[c];
-                for e in 0..3 {
-                    v[c][e] += kb * ph[e];
-                }
-                let kbb = kb * base[c];
-                let (l1, l2) = (kbb * ph[1], kbb * ph[2]);
-                mm[c][0] += kbb;
-                mm[c][1] += l1;
-                mm[c][2] += l2;
-                mm[c][3] += l1 * ph[1];
-                mm[c][4] += l1 * ph[2];
-                mm[c][5] += l2 * ph[2];
-                for d in 0..3 {
-                    let s = kb * pa[d];
-                    for e in 0..3 {
-                        w[c][d][e] += s * ph[e];
-                    }
-                }
-            }
-        }
-    });
+        });
+    }
+    let Moments { mm, v, w, fs } = moments;
     let k_j: [DVec3; NUM_SHAPE] = std::array::from_fn(|b| {
         DVec3::new(
             dot3(&alpha[0][b], &v[0]),
@@ -1258,15 +1367,8 @@ pub fn step_prepared(
         // Solved after the global update, at the new pose (below).
         report.substeps = 1;
     } else if params.free.local {
-        let rt = rotation_matrix(state.rotation).transpose();
-        ws.local_force.clear();
-        ws.local_force.extend(forces.force.iter().map(|f| rt * *f));
         let (w0, w1, gamma) = (params.w0, params.w1, params.gamma_local);
-        let (rows, inv_area) = ws.row_bounds(tess, w0, w1);
-        let lambda_max = (0..n)
-            .map(|i| rows[i] * inv_area[i])
-            .fold(0.0_f64, f64::max)
-            / gamma;
+        let lambda_max = ws.max_rate(tess, w0, w1) / gamma;
         report.dt_critical = if lambda_max > 0.0 {
             2.0 / lambda_max
         } else {
@@ -1287,9 +1389,14 @@ pub fn step_prepared(
         report.substeps = substeps;
         // Data springs linearised about the start of the step, F(d) = F(d⁰) − κ (d − d⁰), and
         // taken implicitly (they are diagonal): d += h (f − κ (d − d⁰) − K d) / (γ A + h κ).
+        let rt = rotation_matrix(state.rotation).transpose();
+        ws.local_force.clear();
         ws.substep_scale.clear();
-        ws.substep_scale
-            .extend((0..n).map(|i| h / (gamma * tess.node_area[i] + h * forces.stiffness[i])));
+        for i in 0..n {
+            ws.local_force.push(rt * forces.force[i]);
+            ws.substep_scale
+                .push(h / (gamma * tess.node_area[i] + h * forces.stiffness[i]));
+        }
         for _ in 0..substeps {
             ws.kd.clear();
             ws.kd.resize(n, DVec3::ZERO);
