@@ -1084,7 +1084,8 @@ fn axis_hypotheses(pose: &InitialPose) -> [InitialPose; 3] {
     std::array::from_fn(|i| turned_axes(pose, i, false))
 }
 
-/// The most threads [`run_parallel`] starts: one for each item up to this many.
+/// The most threads a fit starts for its axis hypotheses and similarity candidates: one for each
+/// up to this many (beyond that each thread takes the next one).
 pub const MAX_FIT_THREADS: usize = 8;
 
 /// Runs `job` on every item, each on a thread of its own (up to [`MAX_FIT_THREADS`]; beyond that
