@@ -944,18 +944,8 @@ fn global_system_superquadric(
     // summed over it, and its cos^ε1 u, sin^ε1 u and their logs multiply the sums once.
     for ring in 0..k + 2 {
         // The ring's nodes, and their longitudes' powers and logs (a pole's own, at v = 0).
-        let (nodes, lon_powers, lon_trig) = match ring {
-            0 => (0..1, &grid.poles[..1], &tess.trig[..1]),
-            r if r > k => {
-                let np = tess.north_pole();
-                (np..np + 1, &grid.poles[1..], &tess.trig[np..np + 1])
-            }
-            r => (
-                1 + (r - 1) * k..1 + r * k,
-                &grid.longitudes[..],
-                &tess.trig[1..=k],
-            ),
-        };
+        let (nodes, lon_trig) = tess.grid_ring(ring);
+        let lon_powers = grid.ring_longitudes(ring);
         let mut sums = RingSums::default();
         let node_terms = forces.force[nodes.clone()]
             .iter()

@@ -263,6 +263,16 @@ impl GridPowers {
         };
         SignedPowers { cu, su, cv, sv }
     }
+
+    /// The (cos^ε2 v, sin^ε2 v) of the nodes of ring `ring` as [`Tessellation::grid_ring`]
+    /// numbers them: the k longitudes, or a pole's own entry.
+    pub fn ring_longitudes(&self, ring: usize) -> &[[f64; 2]] {
+        match ring {
+            0 => &self.poles[..1],
+            r if r > self.longitudes.len() => &self.poles[1..],
+            _ => &self.longitudes,
+        }
+    }
 }
 
 /// Adds K_e q_e of every element in `elems` (all sharing the matrix `k`) to `out`.
@@ -428,6 +438,21 @@ impl Tessellation {
             (self.k + 1, None)
         } else {
             ((i - 1) / self.k + 1, Some((i - 1) % self.k))
+        }
+    }
+
+    /// The nodes of ring `ring` (0 the south pole, 1..=k the rings, k + 1 the north pole, as
+    /// [`Tessellation::for_each_grid_node`] numbers them) and the [`Trig`] terms of their
+    /// longitudes, in node order (a pole's own terms, at v = 0).
+    pub fn grid_ring(&self, ring: usize) -> (std::ops::Range<usize>, &[Trig]) {
+        let k = self.k;
+        match ring {
+            0 => (0..1, &self.trig[..1]),
+            r if r > k => {
+                let np = self.north_pole();
+                (np..np + 1, &self.trig[np..np + 1])
+            }
+            r => (1 + (r - 1) * k..1 + r * k, &self.trig[1..=k]),
         }
     }
 
@@ -891,6 +916,37 @@ mod tests {
                 assert_eq!((ring, lon), t.grid_index(i), "k {k} node {i}");
                 next += 1;
             });
+            assert_eq!(next, t.node_count());
+        }
+    }
+
+    #[test]
+    fn grid_rings_cover_every_node_in_order_with_its_longitude_terms() {
+        let q = SuperquadricParams::default();
+        for k in [3, 4, 17] {
+            let t = Tessellation::new(k);
+            let mut grid = GridPowers::default();
+            t.grid_powers(&q, &mut grid);
+            let mut next = 0;
+            for ring in 0..k + 2 {
+                let (nodes, trig) = t.grid_ring(ring);
+                let powers = grid.ring_longitudes(ring);
+                assert_eq!(
+                    (nodes.start, nodes.len()),
+                    (next, trig.len()),
+                    "k {k} ring {ring}"
+                );
+                assert_eq!(powers.len(), trig.len(), "k {k} ring {ring}");
+                for (j, i) in nodes.enumerate() {
+                    assert_eq!(t.grid_index(i).0, ring, "k {k} node {i}");
+                    // The node's own longitude terms and signed powers.
+                    assert_eq!(trig[j].ln_cv.to_bits(), t.trig[i].ln_cv.to_bits());
+                    assert_eq!(trig[j].ln_sv.to_bits(), t.trig[i].ln_sv.to_bits());
+                    let at = grid.at(&t, i);
+                    assert_eq!(powers[j], [at.cv, at.sv], "k {k} node {i}");
+                }
+                next += trig.len();
+            }
             assert_eq!(next, t.node_count());
         }
     }
