@@ -344,6 +344,11 @@ impl NodalForces {
         f
     }
 
+    /// Whether any point-to-plane spring acts: some ρ_i in `plane_stiffness` is non-zero.
+    pub fn has_plane_springs(&self) -> bool {
+        self.plane_stiffness.iter().any(|&rho| rho != 0.0)
+    }
+
     /// Resets to zero forces on `n` nodes, keeping the allocation.
     pub fn clear(&mut self, n: usize) {
         for v in [
@@ -1000,7 +1005,7 @@ fn global_system_superquadric(
     // Point-to-plane springs: ρ g gᵀ for g = L_iᵀ n = (n, Gᵀ (p × Rᵀn), Jᵀ Rᵀn), upper triangle.
     let mut plane_gram = [[0.0; NUM_GLOBAL]; NUM_GLOBAL];
     let mut plane_sum = 0.0;
-    if forces.plane_stiffness.len() == forces.force.len() {
+    if forces.has_plane_springs() {
         for_each_forced_node(tess, ws, forces, |node| {
             let ForcedNode {
                 i,
