@@ -919,8 +919,8 @@ fn add<const N: usize>(acc: &mut [f64; N], scale: f64, terms: [f64; N]) {
     }
 }
 
-/// Accumulates the stiffness-weighted Gram matrix Σ κ_i L_iᵀ L_i and the generalized forces
-/// Σ L_iᵀ F_i of a plain superquadric (q_T = 0), using the block structure of L = [I, −R p̃ G, R J] and the per-component structure
+/// Accumulates the stiffness-weighted Gram matrix Σ κ_i L_iᵀ L_i (the global damping block) and
+/// the generalized forces Σ L_iᵀ F_i (eq. 33) of a plain superquadric (q_T = 0), using the block structure of L = [I, −R p̃ G, R J] and the per-component structure
 /// of J ([`jacobian_coefficients`]). The x and y components of J's columns are products of a
 /// ring's factor (cos^ε1 u and its log) and a longitude's (cos^ε2 v or sin^ε2 v and its log), the
 /// z components depend on the ring alone; so each node adds to the 31 sums of its ring
