@@ -76,7 +76,7 @@ pub fn draw_debug(
                     );
                 }
                 if config.data_springs
-                    && let Some(inf) = range.forces.influence.get(i)
+                    && let Some(inf) = range.forces.influence().get(i)
                 {
                     gizmos.line(r, inf.at.interpolate(|k| x[k]).as_vec3(), spring_colour);
                 }

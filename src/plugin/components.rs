@@ -403,7 +403,7 @@ impl ImageData {
 }
 
 /// Range data attached to a model: points in world space pulling on their points of influence
-/// (eq. 22). `forces.influence` holds the current point → node (or element) attachment, readable
+/// (eq. 22). `forces.influence()` gives the current point → node (or element) attachment, readable
 /// by other systems.
 #[derive(Component, Clone, Debug)]
 pub struct RangeData {
@@ -447,7 +447,7 @@ impl RangeData {
     /// The node each data point is attached to (the first node of its element when it lies
     /// inside one); empty before the first reattachment.
     pub fn attached_nodes(&self) -> impl Iterator<Item = u32> + '_ {
-        self.forces.influence.iter().map(|i| i.at.nodes[0])
+        self.forces.influence().iter().map(|i| i.at.nodes[0])
     }
 }
 

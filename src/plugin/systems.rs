@@ -84,7 +84,7 @@ pub fn prepare(
             local.displacement = vec![DVec3::ZERO; n];
             scratch.initial = None;
             if let Some(mut range) = range {
-                range.forces.influence.clear();
+                range.forces.detach();
             }
         } else if control.reset_requested {
             if let Some((r, s, l)) = scratch.initial.clone() {
@@ -96,7 +96,7 @@ pub fn prepare(
                 inertia.velocity = Velocity::zero(n);
             }
             if let Some(mut range) = range {
-                range.forces.influence.clear();
+                range.forces.detach();
             }
             *control = SimControl {
                 paused: control.paused,
@@ -170,7 +170,7 @@ pub fn reassign(
                     control
                         .steps
                         .is_multiple_of(settings.reassign_every.max(1) as u64)
-                        || range.forces.influence.len() != range.forces.points().len()
+                        || range.forces.influence().len() != range.forces.points().len()
                 }
             };
             if !due {

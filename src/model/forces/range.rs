@@ -107,8 +107,9 @@ pub struct RangeForces {
     pub beta: f64,
     /// How points of influence are chosen.
     pub mode: InfluenceMode,
-    /// Current point of influence of each data point (empty until the first [`Self::reassign`]).
-    pub influence: Vec<Influence>,
+    /// Current point of influence of each data point (empty until the first [`Self::reassign`];
+    /// read with [`Self::influence`]).
+    influence: Vec<Influence>,
     /// Density of the model-to-data coverage springs, as a fraction of β (see the module docs).
     pub coverage: f64,
     /// Nearest data point of each node, refreshed with the points of influence.
@@ -137,6 +138,11 @@ pub struct RangeForces {
     /// sine, a cosine or a logarithm. An entry whose (u, v) is no longer its point's is computed
     /// afresh.
     surface_terms: Vec<SurfaceTerms>,
+    /// Each point's node while every point of influence sits on a node, as it does after a
+    /// nearest-node reassignment: a copy of `influence[i].at.nodes[0]`, 4 bytes a point where an
+    /// [`Influence`] is 128, so that [`Self::accumulate`] reads only what nearest-node springs
+    /// need. Empty otherwise, and emptied whenever `influence` changes another way.
+    on_node: Vec<u32>,
 }
 
 /// A point of influence's material coordinates and their [`Trig`] terms.
@@ -424,6 +430,7 @@ impl RangeForces {
             plane: false,
             parallel: false,
             surface_offset: Vec::new(),
+            on_node: Vec::new(),
             surface_terms: Vec::new(),
         }
     }
@@ -441,6 +448,21 @@ impl RangeForces {
         } else {
             SURFACE_TANGENT_FRACTION
         }
+    }
+
+    /// The current point of influence of each data point, in the points' order (empty until the
+    /// first [`Self::reassign`] and after [`Self::detach`]).
+    pub fn influence(&self) -> &[Influence] {
+        &self.influence
+    }
+
+    /// Forgets every point of influence, so that the next [`Self::reassign`] attaches every
+    /// point afresh (for a model whose nodes were replaced, or a reset); until then
+    /// [`Self::accumulate`] adds no data point's spring (the coverage springs of the last
+    /// reassignment stay).
+    pub fn detach(&mut self) {
+        self.influence.clear();
+        self.on_node.clear();
     }
 
     /// Where point `i`'s point of influence is, for nodes at `node_x`: interpolated on the mesh,
@@ -540,6 +562,11 @@ impl RangeForces {
                 }
                 changed += 1;
             }
+        }
+        self.on_node.clear();
+        if self.influence.iter().all(|inf| inf.at.weights[0] == 1.0) {
+            self.on_node
+                .extend(self.influence.iter().map(|inf| inf.at.nodes[0]));
         }
         let sigma2 = self.robust.as_ref().map(|r| r.sigma2);
         self.update_robust(node_x);
@@ -655,6 +682,14 @@ impl RangeForces {
                     }
                 }
             }
+        } else if self.on_node.len() == self.points.len() && self.surface_offset.is_empty() {
+            // Every spring on a node (the paper's nearest-node springs): what `out.add` does for
+            // a point on a node, in the same order, from the compact copy of the nodes.
+            for (i, (r, &n)) in self.points.iter().zip(&self.on_node).enumerate() {
+                let (w, n) = (w_of(i), n as usize);
+                out.force[n] += w * (*r - node_x[n]);
+                out.stiffness[n] += w;
+            }
         } else {
             for (i, (r, inf)) in self.points.iter().zip(&self.influence).enumerate() {
                 let w = w_of(i);
@@ -747,6 +782,7 @@ impl RangeForces {
             self.surface_terms.clear();
             return;
         };
+        self.on_node.clear();
         let m = self.points.len();
         // Each point moves on its own, so the points may go over the cores; every point's
         // result is the same on any thread. Without `parallel` the loop stays on the calling
@@ -1252,6 +1288,70 @@ mod tests {
                 "{off_nodes} off nodes"
             );
         }
+    }
+
+    /// Nearest-node springs read their nodes from the compact copy (`on_node`), and give the
+    /// forces and stiffnesses the general path gives from the points of influence, to the bit,
+    /// with and without robust weights; migrating points and [`RangeForces::detach`] leave no
+    /// copy behind, and a detached range adds no spring until it is reassigned.
+    #[test]
+    fn springs_on_nodes_match_the_general_path_to_the_bit() {
+        let (tess, _, x) = superquadric_nodes(12, [1.0, 0.8, 0.7, 1.3]);
+        let general = |range: &RangeForces| {
+            let mut slow = range.clone();
+            slow.on_node.clear();
+            let mut out = NodalForces::new(tess.node_count());
+            slow.accumulate(&tess, &x, &mut out);
+            out
+        };
+        for robust in [None, Some(Robust::new(0.1))] {
+            let mut range =
+                RangeForces::new(pseudo_random(700, 3), 2.0, InfluenceMode::NearestNode);
+            range.robust = robust;
+            range.coverage = 0.0;
+            range.reassign(&tess, &x);
+            assert_eq!(range.on_node.len(), 700);
+            let mut fast = NodalForces::new(tess.node_count());
+            range.accumulate(&tess, &x, &mut fast);
+            assert!(fast == general(&range), "the on-node path differs");
+            assert!(fast.stiffness.iter().any(|&k| k > 0.0));
+
+            range.detach();
+            assert!(range.influence().is_empty() && range.on_node.is_empty());
+            let mut none = NodalForces::new(tess.node_count());
+            range.accumulate(&tess, &x, &mut none);
+            assert!(
+                none == NodalForces::new(tess.node_count()),
+                "a detached range pulls"
+            );
+            range.reassign(&tess, &x);
+            let mut again = NodalForces::new(tess.node_count());
+            range.accumulate(&tess, &x, &mut again);
+            assert_eq!(range.on_node.len(), 700);
+            assert!(
+                again == general(&range),
+                "the reattached on-node path differs"
+            );
+            // Without robust weights (whose σ² a reassignment moves on) the same springs again.
+            assert!(
+                range.robust.is_some() || again == fast,
+                "reattached springs differ"
+            );
+        }
+        let mut migrating = RangeForces::new(
+            pseudo_random(300, 4),
+            2.0,
+            InfluenceMode::Migrating { rate: 0.5 },
+        );
+        migrating.reassign(&tess, &x);
+        migrating.migrate(&tess, &x, None);
+        assert!(migrating.on_node.is_empty());
+        assert!(
+            migrating
+                .influence()
+                .iter()
+                .any(|inf| inf.at.weights[0] != 1.0)
+        );
     }
 
     #[test]
