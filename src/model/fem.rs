@@ -546,18 +546,13 @@ impl Tessellation {
         let row = |i: usize| &q[1 + i * k..1 + (i + 1) * k];
         for i in 0..k {
             let o = &mut out[1 + i * k..1 + (i + 1) * k];
-            let (up, down) = ((i + 1 < k).then(|| row(i + 1)), (i > 0).then(|| row(i - 1)));
-            let own = match (up, down) {
-                (Some(_), Some(_)) => both_own,
-                (Some(_), None) => above_own,
-                (None, _) => below_own,
-            };
-            add_ring_stencil(own, row(i), o);
-            if let Some(a) = up {
-                add_ring_stencil(above_ring, a, o);
-            }
-            if let Some(b) = down {
-                add_ring_stencil(below_ring, b, o);
+            let up = (i + 1 < k).then(|| (above_ring, row(i + 1)));
+            let down = (i > 0).then(|| (below_ring, row(i - 1)));
+            match (up, down) {
+                (Some(a), Some(b)) => add_ring_stencils([(both_own, row(i)), a, b], o),
+                (Some(a), None) => add_ring_stencils([(above_own, row(i)), a], o),
+                (None, Some(b)) => add_ring_stencils([(below_own, row(i)), b], o),
+                (None, None) => add_ring_stencils([(below_own, row(i))], o),
             }
         }
         apply_elements(&self.north, &self.north_matrices.stiffness(w0, w1), q, out);
@@ -774,17 +769,37 @@ pub struct CgScratch {
     ap: Vec<DVec3>,
 }
 
-/// Adds w₋ x_(j−1) + w₀ x_j + w₊ x_(j+1) to `out[j]` round one ring (j ± 1 wrapping): one row of
-/// [`Tessellation::apply_stiffness`]'s 9-point stencil, `w` = [w₋, w₀, w₊].
+/// Adds Σ_r (w_r,₋ x_r,j−1 + w_r,0 x_r,j + w_r,₊ x_r,j+1) to `out[j]` round one ring (j ± 1
+/// wrapping), the rows r = (w_r, x_r) taken in the order given: the ring's own row of
+/// [`Tessellation::apply_stiffness`]'s 9-point stencil, then the ring above's and the ring
+/// below's where there are such rings. Each row's three terms are added to `out[j]` as one sum,
+/// row after row, so the result is the same to the bit as one pass a row. Between the ring's
+/// first and last node the rings are read as flat arrays of coordinates, where a node's
+/// neighbours are three entries away, so that the loop vectorises; the two nodes where the ring
+/// closes are added as vectors.
 #[inline(always)]
-fn add_ring_stencil(w: [f64; 3], x: &[DVec3], out: &mut [DVec3]) {
+fn add_ring_stencils<const R: usize>(rows: [([f64; 3], &[DVec3]); R], out: &mut [DVec3]) {
     // A ring has k ≥ MIN_K = 3 nodes.
-    let k = x.len();
-    out[0] += w[0] * x[k - 1] + w[1] * x[0] + w[2] * x[1];
-    for j in 1..k - 1 {
-        out[j] += w[0] * x[j - 1] + w[1] * x[j] + w[2] * x[j + 1];
+    let k = out.len();
+    for (w, x) in &rows {
+        out[0] += w[0] * x[k - 1] + w[1] * x[0] + w[2] * x[1];
+        out[k - 1] += w[0] * x[k - 2] + w[1] * x[k - 1] + w[2] * x[0];
     }
-    out[k - 1] += w[0] * x[k - 2] + w[1] * x[k - 1] + w[2] * x[0];
+    // Nodes 1..k − 1: coordinates 3..3k − 3, whose neighbours lie at m − 3 and m + 3.
+    let flat: &mut [f64] = bytemuck::cast_slice_mut(out);
+    let n = 3 * (k - 2);
+    let o = &mut flat[3..3 + n];
+    let rows = rows.map(|(w, x)| {
+        let x: &[f64] = bytemuck::cast_slice(x);
+        (w, &x[..n], &x[3..3 + n], &x[6..6 + n])
+    });
+    for m in 0..n {
+        let mut v = o[m];
+        for (w, before, at, after) in &rows {
+            v += w[0] * before[m] + w[1] * at[m] + w[2] * after[m];
+        }
+        o[m] = v;
+    }
 }
 
 /// `x` reduced to [0, 2π): `x.rem_euclid(2π)`, bit for bit, without the `fmod` call when `x` is
@@ -970,6 +985,40 @@ mod tests {
             for (i, (a, b)) in fast.iter().zip(&reference).enumerate() {
                 assert!((*a - *b).length() < 1e-13, "k {k} node {i}: {a} vs {b}");
             }
+        }
+    }
+
+    #[test]
+    fn the_flat_ring_stencil_adds_each_row_to_the_bit_as_a_pass_of_its_own() {
+        // The reference: one row at a time, node by node, as whole vectors (j ± 1 wrapping).
+        let one_row = |w: [f64; 3], x: &[DVec3], out: &mut [DVec3]| {
+            let k = x.len();
+            for j in 0..k {
+                let (before, after) = (x[(j + k - 1) % k], x[(j + 1) % k]);
+                out[j] += w[0] * before + w[1] * x[j] + w[2] * after;
+            }
+        };
+        let w = [
+            [0.31, -1.7, 0.29],
+            [-0.11, 0.45, -0.13],
+            [0.07, -0.52, 0.19],
+        ];
+        for k in [3, 4, 5, 12, 71] {
+            let rows: Vec<Vec<DVec3>> = (0..3).map(|r| field(k, 0.37 * r as f64)).collect();
+            let start = field(k, 2.5);
+            let (mut fast, mut reference) = (start.clone(), start.clone());
+            add_ring_stencils(
+                [(w[0], &rows[0][..]), (w[1], &rows[1]), (w[2], &rows[2])],
+                &mut fast,
+            );
+            for r in 0..3 {
+                one_row(w[r], &rows[r], &mut reference);
+            }
+            assert_eq!(fast, reference, "k = {k}, three rows");
+            let (mut fast, mut reference) = (start.clone(), start);
+            add_ring_stencils([(w[1], &rows[1][..])], &mut fast);
+            one_row(w[1], &rows[1], &mut reference);
+            assert_eq!(fast, reference, "k = {k}, one row");
         }
     }
 
