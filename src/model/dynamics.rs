@@ -1386,19 +1386,28 @@ pub fn step_prepared(
         // taken implicitly (they are diagonal): d += h (f − κ (d − d⁰) − K d) / (γ A + h κ).
         let rt = rotation_matrix(state.rotation).transpose();
         ws.local_force.clear();
+        ws.local_force.extend(forces.force.iter().map(|f| rt * *f));
+        // As one pass over two slices, so that the divisions vectorise.
         ws.substep_scale.clear();
-        for i in 0..n {
-            ws.local_force.push(rt * forces.force[i]);
-            ws.substep_scale
-                .push(h / (gamma * tess.node_area[i] + h * forces.stiffness[i]));
-        }
+        ws.substep_scale.extend(
+            tess.node_area
+                .iter()
+                .zip(&forces.stiffness)
+                .map(|(a, kappa)| h / (gamma * a + h * kappa)),
+        );
         for _ in 0..substeps {
             ws.kd.clear();
             ws.kd.resize(n, DVec3::ZERO);
             tess.apply_stiffness(w0, w1, &ws.new_d, &mut ws.kd);
-            for i in 0..n {
-                let spring = forces.stiffness[i] * (ws.new_d[i] - state.displacement[i]);
-                ws.new_d[i] += ws.substep_scale[i] * (ws.local_force[i] - spring - ws.kd[i]);
+            let nodes = ws
+                .new_d
+                .iter_mut()
+                .zip(&state.displacement)
+                .zip(forces.stiffness.iter().zip(&ws.substep_scale))
+                .zip(ws.local_force.iter().zip(&ws.kd));
+            for (((d, d0), (kappa, scale)), (f, kd)) in nodes {
+                let spring = *kappa * (*d - *d0);
+                *d += *scale * (*f - spring - *kd);
             }
         }
     }
