@@ -572,6 +572,25 @@ impl Workspace {
         let c = state.translation;
         self.points.clear();
         self.world.clear();
+        if state.deformation.is_identity() && state.displacement.len() == tess.node_count() {
+            // The paper's model, ring by ring over slices: the same p_i and x_i as the node
+            // walk below, without its branches and bounds checks.
+            tess.grid_powers(&state.shape, &mut self.grid);
+            let axes = state.shape.semi_axes();
+            for ring in 0..tess.k + 2 {
+                let (nodes, _) = tess.grid_ring(ring);
+                let [cu, su] = self.grid.rings[ring];
+                let longitudes = self.grid.ring_longitudes(ring);
+                self.points.extend(
+                    longitudes
+                        .iter()
+                        .zip(&state.displacement[nodes])
+                        .map(|([cv, sv], d)| axes * DVec3::new(cu * cv, cu * sv, su) + *d),
+                );
+            }
+            self.world.extend(self.points.iter().map(|p| c + r * *p));
+            return &self.world;
+        }
         let (points, world) = (&mut self.points, &mut self.world);
         for_each_model_point(
             tess,
@@ -1551,6 +1570,27 @@ pub(crate) mod tests {
             .zip(&x)
             .map(|(f, x)| f.dot(*x))
             .sum::<f64>()
+    }
+
+    #[test]
+    fn prepare_gives_the_node_walks_positions_to_the_bit() {
+        // The ring-by-ring path (plain superquadric, every displacement) and the node walk
+        // (deformed, or displacements missing at the end) against `node_positions`.
+        for k in [3, 8, 31] {
+            let tess = Tessellation::new(k);
+            let mut short = test_state(&tess);
+            short.displacement.truncate(tess.node_count() - k - 1);
+            for state in [test_state(&tess), deformed_state(&tess), short] {
+                let mut expected = Vec::new();
+                state.node_positions(&tess, &mut expected);
+                let mut ws = Workspace::default();
+                assert_eq!(ws.prepare(&tess, &state), &expected[..], "k = {k}");
+                let rt = rotation_matrix(state.rotation).transpose();
+                for (p, x) in ws.points.iter().zip(&expected) {
+                    assert!((*p - rt * (*x - state.translation)).length() < 1e-12);
+                }
+            }
+        }
     }
 
     #[test]
