@@ -304,12 +304,26 @@ fn visit_points(
     deform: impl Fn(DVec3) -> DVec3,
     mut visit: impl FnMut(usize, DVec3),
 ) {
-    tess.for_each_grid_node(|i, ring, lon| {
+    // Ring by ring over slices (the poles are rings of one node): no per-node grid walk, and
+    // the displacements read by slice where they are all present.
+    for ring in 0..tess.k + 2 {
+        let (nodes, _) = tess.grid_ring(ring);
         let [cu, su] = grid.rings[ring];
-        let [cv, sv] = lon.map_or(grid.poles[usize::from(ring != 0)], |j| grid.longitudes[j]);
-        let d = displacement.get(i).copied().unwrap_or_default();
-        visit(i, deform(axes * DVec3::new(cu * cv, cu * sv, su)) + d);
-    });
+        let longitudes = grid.ring_longitudes(ring);
+        let s = |[cv, sv]: &[f64; 2]| deform(axes * DVec3::new(cu * cv, cu * sv, su));
+        match displacement.get(nodes.clone()) {
+            Some(d) => {
+                for ((i, lon), d) in nodes.zip(longitudes).zip(d) {
+                    visit(i, s(lon) + *d);
+                }
+            }
+            None => {
+                for (i, lon) in nodes.zip(longitudes) {
+                    visit(i, s(lon) + displacement.get(i).copied().unwrap_or_default());
+                }
+            }
+        }
+    }
 }
 
 /// Point forces spread to the nodes, with the stiffness weight κ_i of the springs among them.
@@ -572,37 +586,18 @@ impl Workspace {
         let c = state.translation;
         self.points.clear();
         self.world.clear();
-        if state.deformation.is_identity() && state.displacement.len() == tess.node_count() {
-            // The paper's model, ring by ring over slices: the same p_i and x_i as the node
-            // walk below, without its branches and bounds checks.
-            tess.grid_powers(&state.shape, &mut self.grid);
-            let axes = state.shape.semi_axes();
-            for ring in 0..tess.k + 2 {
-                let (nodes, _) = tess.grid_ring(ring);
-                let [cu, su] = self.grid.rings[ring];
-                let longitudes = self.grid.ring_longitudes(ring);
-                self.points.extend(
-                    longitudes
-                        .iter()
-                        .zip(&state.displacement[nodes])
-                        .map(|([cv, sv], d)| axes * DVec3::new(cu * cv, cu * sv, su) + *d),
-                );
-            }
-            self.world.extend(self.points.iter().map(|p| c + r * *p));
-            return &self.world;
-        }
-        let (points, world) = (&mut self.points, &mut self.world);
+        let points = &mut self.points;
         for_each_model_point(
             tess,
             &state.shape,
             &state.deformation,
             &mut self.grid,
             &state.displacement,
-            |_, p| {
-                points.push(p);
-                world.push(c + r * p);
-            },
+            |_, p| points.push(p),
         );
+        // The world positions in a pass of their own: a loop that pushed both took 6 % longer
+        // at 5043 nodes (BENCHMARKS.md, log entry 27).
+        self.world.extend(self.points.iter().map(|p| c + r * *p));
         &self.world
     }
 
@@ -1574,8 +1569,8 @@ pub(crate) mod tests {
 
     #[test]
     fn prepare_gives_the_node_walks_positions_to_the_bit() {
-        // The ring-by-ring path (plain superquadric, every displacement) and the node walk
-        // (deformed, or displacements missing at the end) against `node_positions`.
+        // Plain, deformed, and with displacements missing at the end (the ring walk's slice
+        // and per-node paths), against `node_positions`.
         for k in [3, 8, 31] {
             let tess = Tessellation::new(k);
             let mut short = test_state(&tess);
