@@ -46,6 +46,7 @@ use super::deform::{GlobalDeformation, NUM_DEFORM};
 use super::fem::{CgScratch, ElementPoint, GridPowers, Tessellation};
 use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
 use super::linalg::cholesky_solve;
+use super::simd::with_avx2;
 use super::superquadric::{NUM_SHAPE, SignedPowers, SuperquadricParams, Trig, shape_from_powers};
 use bevy::math::{DMat3, DQuat, DVec3};
 
@@ -582,6 +583,13 @@ impl Workspace {
     /// points p_i = s_i + d_i and the world positions x_i = c + R p_i (eqs. 2, 3), and returns the
     /// world positions (also [`Workspace::world_positions`] until the next call).
     pub fn prepare(&mut self, tess: &Tessellation, state: &ModelState) -> &[DVec3] {
+        with_avx2!({ self.prepare_body(tess, state) });
+        &self.world
+    }
+
+    /// [`Self::prepare`]'s body, inlined into both of its builds.
+    #[inline(always)]
+    fn prepare_body(&mut self, tess: &Tessellation, state: &ModelState) {
         let r = rotation_matrix(state.rotation);
         let c = state.translation;
         self.points.clear();
@@ -598,7 +606,6 @@ impl Workspace {
         // The world positions in a pass of their own: a loop that pushed both took 6 % longer
         // at 5043 nodes (BENCHMARKS.md, log entry 27).
         self.world.extend(self.points.iter().map(|p| c + r * *p));
-        &self.world
     }
 
     /// The world node positions of the state last given to [`Workspace::prepare`].
@@ -1343,6 +1350,18 @@ pub fn step(
 /// Given a workspace prepared for another state, the step uses that state's node points. After
 /// the step the workspace must be prepared again before its positions are read.
 pub fn step_prepared(
+    tess: &Tessellation,
+    state: &mut ModelState,
+    forces: &NodalForces,
+    params: &DynamicsParams,
+    ws: &mut Workspace,
+) -> Result<StepReport, StepError> {
+    with_avx2!({ step_prepared_body(tess, state, forces, params, ws) })
+}
+
+/// [`step_prepared`]'s body, inlined into both of its builds.
+#[inline(always)]
+fn step_prepared_body(
     tess: &Tessellation,
     state: &mut ModelState,
     forces: &NodalForces,

@@ -16,6 +16,7 @@
 //! strain component is d_k = Σ N_i q_i — and is implemented so. K_dd is never assembled:
 //! [`Tessellation::apply_stiffness`] adds K q without assembling K, as section IV prescribes.
 
+use super::simd::with_avx2;
 use super::superquadric::{SignedPowers, SuperquadricParams, Trig, spow};
 use bevy::math::DVec3;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
@@ -532,6 +533,12 @@ impl Tessellation {
     /// applied as the 3 × 3 stencil it sums to, ring by ring; the cap triangles element by
     /// element. Equal to [`Tessellation::apply_stiffness_by_element`] up to rounding (tested).
     pub fn apply_stiffness(&self, w0: f64, w1: f64, q: &[DVec3], out: &mut [DVec3]) {
+        with_avx2!({ self.apply_stiffness_body(w0, w1, q, out) })
+    }
+
+    /// [`Self::apply_stiffness`]'s body, inlined into both of its builds.
+    #[inline(always)]
+    fn apply_stiffness_body(&self, w0: f64, w1: f64, q: &[DVec3], out: &mut [DVec3]) {
         let kq = self.quad_matrices.stiffness(w0, w1);
         // A node is corner 0 of quad (i, j) and corner 3 of quad (i, j − 1) in the band above
         // it, corner 1 of quad (i − 1, j) and corner 2 of quad (i − 1, j − 1) in the band below.

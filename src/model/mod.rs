@@ -22,4 +22,5 @@ pub mod joint;
 pub mod linalg;
 pub mod noise;
 pub mod parts;
+mod simd;
 pub mod superquadric;

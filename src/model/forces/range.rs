@@ -61,6 +61,7 @@
 
 use crate::model::dynamics::{ModelSurface, NodalForces};
 use crate::model::fem::{ElementPoint, Tessellation};
+use crate::model::simd::with_avx2;
 use crate::model::superquadric::Trig;
 use bevy::math::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -659,6 +660,12 @@ impl RangeForces {
     /// `out.plane_stiffness`: the global DOFs only. Does nothing before the first
     /// [`Self::reassign`].
     pub fn accumulate(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut NodalForces) {
+        with_avx2!({ self.accumulate_body(tess, node_x, out) })
+    }
+
+    /// [`Self::accumulate`]'s body, inlined into both of its builds.
+    #[inline(always)]
+    fn accumulate_body(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut NodalForces) {
         let w = self.point_weight(tess);
         // Each spring's constant: w, or w m p_i / Σ p with robust weights (looked up once here).
         let robust = self.inlier_scale();
@@ -1352,6 +1359,73 @@ mod tests {
                 .iter()
                 .any(|inf| inf.at.weights[0] != 1.0)
         );
+    }
+
+    /// The AVX2 build of the step's passes over the nodes (`model::simd`) gives the default
+    /// build's forces, node positions and state to the bit, over several steps: with the explicit
+    /// local update sub-stepped, for nearest-node springs with coverage springs and for
+    /// point-to-plane springs with robust weights, and with the implicit membrane's conjugate
+    /// gradients. (On a processor without AVX2 both runs take the default build.)
+    #[test]
+    fn the_avx2_build_of_a_step_gives_the_default_builds_values_to_the_bit() {
+        use crate::model::dynamics::{DynamicsParams, Workspace, step_prepared, tests::test_state};
+        use crate::model::simd::without_avx2;
+        let tess = Tessellation::new(23);
+        let n = tess.node_count();
+        let start = test_state(&tess);
+        let mut x = Vec::new();
+        start.node_positions(&tess, &mut x);
+        let cases = [
+            (false, None, false),
+            (true, Some(Robust::new(0.1)), false),
+            (false, None, true),
+        ];
+        for (plane, robust, implicit_local) in cases {
+            let params = DynamicsParams {
+                dt: 0.2,
+                implicit_local,
+                ..Default::default()
+            };
+            let mut range =
+                RangeForces::new(pseudo_random(900, 5), 2.0, InfluenceMode::NearestNode);
+            range.plane = plane;
+            range.robust = robust;
+            range.reassign(&tess, &x);
+            let run = || {
+                let (mut state, mut ws) = (start.clone(), Workspace::default());
+                let mut forces = NodalForces::new(n);
+                let mut reports = Vec::new();
+                for _ in 0..3 {
+                    forces.clear(n);
+                    range.accumulate(&tess, ws.prepare(&tess, &state), &mut forces);
+                    reports.push(step_prepared(&tess, &mut state, &forces, &params, &mut ws));
+                }
+                (state, forces, ws.world_positions().to_vec(), reports)
+            };
+            let wide = run();
+            let default = without_avx2(run);
+            assert!(wide.3.iter().all(|r| r.as_ref().is_ok_and(|r| {
+                if implicit_local {
+                    r.local_iterations > 0
+                } else {
+                    r.substeps > 1
+                }
+            })));
+            assert!(wide.0 != start && wide.0.displacement != start.displacement);
+            assert!(
+                wide.1 == default.1,
+                "the spring forces differ (plane {plane})"
+            );
+            assert!(
+                wide.2 == default.2,
+                "the node positions differ (plane {plane})"
+            );
+            assert!(wide.0 == default.0, "the states differ (plane {plane})");
+            assert!(
+                wide.3 == default.3,
+                "the step reports differ (plane {plane})"
+            );
+        }
     }
 
     #[test]
