@@ -360,18 +360,32 @@ impl ImagePotential {
 
     /// P at a plane point, bilinear between pixels; 0 off the image.
     pub fn potential_at(&self, x: DVec2) -> f64 {
-        self.cell(x)
-            .map(|(idx, w)| (0..4).map(|k| w[k] * self.p[idx[k]]).sum())
-            .unwrap_or(0.0)
+        self.cell(x).map_or(0.0, |cell| bilinear(&self.p, &cell))
     }
 
     /// ∇P at a plane point: central differences at the four surrounding pixels, bilinear between
     /// them (section V); zero off the image.
     pub fn gradient_at(&self, x: DVec2) -> DVec2 {
         self.cell(x)
-            .map(|(idx, w)| (0..4).map(|k| w[k] * self.grad[idx[k]]).sum())
-            .unwrap_or(DVec2::ZERO)
+            .map_or(DVec2::ZERO, |cell| bilinear(&self.grad, &cell))
     }
+
+    /// [`Self::gradient_at`] and [`Self::potential_at`] together, from one lookup of the pixel
+    /// cell: the same values to the bit.
+    pub fn gradient_and_potential_at(&self, x: DVec2) -> (DVec2, f64) {
+        self.cell(x).map_or((DVec2::ZERO, 0.0), |cell| {
+            (bilinear(&self.grad, &cell), bilinear(&self.p, &cell))
+        })
+    }
+}
+
+/// Σ_k N_k v_k over the four pixels of a [`ImagePotential::cell`] lookup.
+fn bilinear<T>(values: &[T], (idx, w): &([usize; 4], [f64; 4])) -> T
+where
+    T: Copy + std::iter::Sum,
+    f64: std::ops::Mul<T, Output = T>,
+{
+    (0..4).map(|k| w[k] * values[idx[k]]).sum()
 }
 
 /// Signed doubled area of a triangle projected on the x–y plane (> 0: it faces +z).
@@ -387,11 +401,14 @@ pub fn projected_facing(x: &[DVec3], t: &[u32; 3]) -> f64 {
 /// Calls `f(a, b)` for every edge of the projected outline (the occluding contour seen along z):
 /// the edges whose two triangles face opposite ways.
 pub fn for_each_outline_edge(tess: &Tessellation, x: &[DVec3], mut f: impl FnMut(u32, u32)) {
-    let tris = tess.triangles();
+    // Each triangle's facing once, not once for each of its three edges.
+    let facing: Vec<bool> = tess
+        .triangles()
+        .iter()
+        .map(|t| projected_facing(x, t) > 0.0)
+        .collect();
     for &[a, b, t1, t2] in &tess.edges {
-        let f1 = projected_facing(x, &tris[t1 as usize]) > 0.0;
-        let f2 = projected_facing(x, &tris[t2 as usize]) > 0.0;
-        if f1 != f2 {
+        if facing[t1 as usize] != facing[t2 as usize] {
             f(a, b);
         }
     }
@@ -482,10 +499,9 @@ impl ImageForces {
             if !acting[i] {
                 continue;
             }
-            let g = self.potential.gradient_at(x.truncate());
+            let (g, p) = self.potential.gradient_and_potential_at(x.truncate());
             let a = tess.node_area[i];
-            let near_edge = (self.potential.potential_at(x.truncate()) / self.potential.p_ref())
-                .clamp(0.0, 1.0);
+            let near_edge = (p / self.potential.p_ref()).clamp(0.0, 1.0);
             out.force[i] += self.beta * a * DVec3::new(g.x, g.y, 0.0);
             out.stiffness[i] += kappa * a * (FLAT_WEIGHT + (1.0 - FLAT_WEIGHT) * near_edge);
         }
