@@ -690,6 +690,26 @@ mod tests {
     }
 
     #[test]
+    fn gradient_and_potential_from_one_lookup_equal_the_two_lookups_to_the_bit() {
+        let (w, h) = (30, 24);
+        let p = ImagePotential::new(w, h, blob(w, h, 5.0), 1.5, ImageFrame::default()).unwrap();
+        let mut inside = 0;
+        // Pixel centres, points between them, the last row and column, and points off the image.
+        for c in [
+            -3.0, -0.4, 0.0, 0.25, 9.0, 9.5, 17.3, 28.9, 29.0, 29.6, 35.0,
+        ] {
+            for r in [-2.0, 0.0, 0.7, 14.0, 14.5, 22.2, 23.0, 23.5, 30.0] {
+                let x = p.to_plane(DVec2::new(c, r));
+                let (g, pot) = p.gradient_and_potential_at(x);
+                assert_eq!(g, p.gradient_at(x), "∇P at pixel ({c}, {r})");
+                assert_eq!(pot, p.potential_at(x), "P at pixel ({c}, {r})");
+                inside += usize::from(pot != 0.0);
+            }
+        }
+        assert!(inside > 20, "only {inside} points had a potential");
+    }
+
+    #[test]
     fn interpolated_gradient_agrees_with_central_differences_of_the_potential() {
         // On a smooth, finely sampled potential the interpolated ∇P is the derivative of P.
         let (w, h) = (120, 120);
