@@ -690,6 +690,38 @@ mod tests {
     }
 
     #[test]
+    fn lookups_at_pixel_centres_read_each_pixels_own_potential_and_foreground() {
+        // A bright disc on a dark background: foreground and background pixels both.
+        let (w, h) = (23, 17);
+        let lum: Vec<f64> = (0..w * h)
+            .map(|i| {
+                let (c, r) = ((i % w) as f64 - 11.0, (i / w) as f64 - 8.0);
+                if c * c + r * r < 25.0 { 0.9 } else { 0.1 }
+            })
+            .collect();
+        let p = ImagePotential::new(w, h, lum, 1.0, ImageFrame::default()).unwrap();
+        let mut foreground = 0;
+        for row in 0..h {
+            for col in 0..w {
+                let i = row * w + col;
+                let x = p.to_plane(DVec2::new(col as f64, row as f64));
+                let expected = p.potential()[i];
+                assert!(
+                    (p.potential_at(x) - expected).abs() <= 1e-12 * p.p_ref(),
+                    "P at pixel ({col}, {row})"
+                );
+                assert_eq!(
+                    p.in_foreground(x),
+                    p.foreground()[i],
+                    "pixel ({col}, {row})"
+                );
+                foreground += usize::from(p.foreground()[i]);
+            }
+        }
+        assert!(foreground > 50 && foreground < w * h - 50, "{foreground}");
+    }
+
+    #[test]
     fn gradient_and_potential_from_one_lookup_equal_the_two_lookups_to_the_bit() {
         let (w, h) = (30, 24);
         let p = ImagePotential::new(w, h, blob(w, h, 5.0), 1.5, ImageFrame::default()).unwrap();
