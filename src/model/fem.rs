@@ -232,11 +232,57 @@ pub struct Tessellation {
     /// Every edge of the render triangulation with the two triangles that share it:
     /// `[node a, node b, triangle 1, triangle 2]` (the surface is closed, so each edge has two).
     pub edges: Vec<[u32; 4]>,
+    /// The render triangles round every node (see [`NodeTriangles`]).
+    pub node_tris: NodeTriangles,
     /// Lumped nodal area A_i = ∫ N_i du (row sums of the mass matrices); Σ A_i is the area the
     /// elements cover in (u, v).
     pub node_area: Vec<f64>,
     /// |Ω| = Σ A_i, summed once (the range springs' weight β |Ω| / m needs it every step).
     pub area: f64,
+}
+
+/// The triangles round every node of a triangulation, as one list with offsets: node n's are
+/// `incident[first[n]..first[n + 1]]`, in ascending order of triangle.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct NodeTriangles {
+    /// Where each node's triangles start in `incident` (one entry per node, and the end).
+    pub first: Vec<u32>,
+    /// The triangles' indices, node after node.
+    pub incident: Vec<u32>,
+}
+
+impl NodeTriangles {
+    /// The triangles of `tris` round each of `nodes` nodes (a corner at or past `nodes` is
+    /// left out).
+    pub fn of(tris: &[[u32; 3]], nodes: usize) -> Self {
+        let mut first = vec![0u32; nodes + 1];
+        for &n in tris.iter().flatten() {
+            if let Some(count) = first.get_mut(n as usize + 1) {
+                *count += 1;
+            }
+        }
+        for n in 0..nodes {
+            first[n + 1] += first[n];
+        }
+        let mut fill = first.clone();
+        let mut incident = vec![0u32; first[nodes] as usize];
+        for (t, tri) in tris.iter().enumerate() {
+            for &n in tri.iter().filter(|&&n| (n as usize) < nodes) {
+                let at = &mut fill[n as usize];
+                incident[*at as usize] = t as u32;
+                *at += 1;
+            }
+        }
+        Self { first, incident }
+    }
+
+    /// The triangles round node `n` (none past the last node).
+    pub fn of_node(&self, n: usize) -> &[u32] {
+        match (self.first.get(n), self.first.get(n + 1)) {
+            (Some(&a), Some(&b)) => &self.incident[a as usize..b as usize],
+            _ => &[],
+        }
+    }
 }
 
 /// Signed powers of a superquadric on the tessellation's grid. Node (ring i, longitude j) has
@@ -389,9 +435,11 @@ impl Tessellation {
             area: 0.0,
             tris: Vec::new(),
             edges: Vec::new(),
+            node_tris: NodeTriangles::default(),
         };
         t.tris = t.build_triangles();
         t.edges = edge_faces(&t.tris);
+        t.node_tris = NodeTriangles::of(&t.tris, t.node_count());
         let mut area = vec![0.0; t.node_count()];
         t.for_each_element(|nodes, grad_mass| {
             for (a, &n) in nodes.iter().enumerate() {
@@ -744,6 +792,19 @@ impl Tessellation {
         }
     }
 
+    /// The smooth normal of node `i` alone: [`Self::vertex_normals`]' entry `i`, to the bit (the
+    /// same triangles' normals added in the same order), for a caller that needs only a few
+    /// nodes' normals.
+    pub fn vertex_normal(&self, x: &[DVec3], i: usize) -> DVec3 {
+        let mut n = DVec3::ZERO;
+        for &t in self.node_tris.of_node(i) {
+            let [a, b, c] = self.tris[t as usize];
+            let (pa, pb, pc) = (x[a as usize], x[b as usize], x[c as usize]);
+            n += (pb - pa).cross(pc - pa);
+        }
+        n.normalize_or_zero()
+    }
+
     /// The render triangulation: each quad split in two and a fan at each pole, wound so that
     /// (B − A) × (C − A) points outward on a superquadric. 2k² triangles.
     pub fn triangles(&self) -> &[[u32; 3]] {
@@ -1026,6 +1087,47 @@ mod tests {
             add_ring_stencils([(w[1], &rows[1][..])], &mut fast);
             one_row(w[1], &rows[1], &mut reference);
             assert_eq!(fast, reference, "k = {k}, one row");
+        }
+    }
+
+    #[test]
+    fn each_nodes_triangles_are_the_triangles_with_that_corner_in_ascending_order() {
+        for k in [3, 4, 9] {
+            let t = Tessellation::new(k);
+            let nt = &t.node_tris;
+            assert_eq!(nt.first.len(), t.node_count() + 1);
+            for n in 0..t.node_count() {
+                let expected: Vec<u32> = (0..t.tris.len() as u32)
+                    .filter(|&i| t.tris[i as usize].contains(&(n as u32)))
+                    .collect();
+                assert_eq!(nt.of_node(n), &expected[..], "k = {k}, node {n}");
+            }
+            assert!(nt.of_node(t.node_count()).is_empty());
+        }
+        // Corners past the node count are left out.
+        let nt = NodeTriangles::of(&[[0, 1, 2], [1, 2, 3]], 3);
+        assert_eq!(nt.of_node(1), &[0, 1]);
+        assert_eq!(nt.of_node(2), &[0, 1]);
+        assert_eq!(nt.incident.len(), 5);
+    }
+
+    #[test]
+    fn one_nodes_normal_is_that_nodes_entry_of_all_the_normals_to_the_bit() {
+        let t = Tessellation::new(17);
+        // A lumpy, off-centre surface, so that no two triangles' normals are alike.
+        let x: Vec<DVec3> = t
+            .trig
+            .iter()
+            .enumerate()
+            .map(|(i, g)| {
+                let r = 1.0 + 0.3 * (i as f64 * 0.37).sin();
+                DVec3::new(0.2, -0.1, 0.4) + r * DVec3::new(g.cu * g.cv, 0.6 * g.cu * g.sv, g.su)
+            })
+            .collect();
+        let mut all = Vec::new();
+        t.vertex_normals(&x, &mut all);
+        for (i, n) in all.iter().enumerate() {
+            assert_eq!(t.vertex_normal(&x, i), *n, "node {i}");
         }
     }
 

@@ -1345,27 +1345,6 @@ pub fn point_distances_parallel(
 fn distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3], parallel: bool) -> Vec<f64> {
     use rayon::prelude::*;
     let tris = tess.triangles();
-    // The triangles round each node, as one list with offsets (node n's are
-    // `incident[first[n]..first[n + 1]]`).
-    let mut first = vec![0u32; node_x.len() + 1];
-    for &n in tris.iter().flatten() {
-        if let Some(count) = first.get_mut(n as usize + 1) {
-            *count += 1;
-        }
-    }
-    for n in 0..node_x.len() {
-        first[n + 1] += first[n];
-    }
-    let mut fill = first.clone();
-    let mut incident = vec![0u32; first[node_x.len()] as usize];
-    for (t, tri) in tris.iter().enumerate() {
-        for &n in tri {
-            if let Some(at) = fill.get_mut(n as usize) {
-                incident[*at as usize] = t as u32;
-                *at += 1;
-            }
-        }
-    }
     let tree = kd_tree(node_x);
     let k = NonZero::new(RESIDUAL_CANDIDATE_NODES.min(node_x.len()).max(1))
         .unwrap_or(NonZero::<usize>::MIN);
@@ -1381,7 +1360,7 @@ fn distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3], parallel: 
         let mut best = f64::INFINITY;
         let mut measure = |n: u32| {
             let n = n as usize;
-            for &t in &incident[first[n] as usize..first[n + 1] as usize] {
+            for &t in tess.node_tris.of_node(n) {
                 if seen[t as usize] == stamp {
                     continue;
                 }
