@@ -10,11 +10,11 @@ use bevy_deformable_sq::model::dynamics::{
 };
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{FitOptions, fit, fit_residuals, residuals};
-use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
+use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential, ImageScratch};
 use bevy_deformable_sq::model::forces::range::{
     InfluenceMode, QueryOrder, RangeForces, nearest_indices,
 };
-use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment};
+use bevy_deformable_sq::model::image_fit::{ImageExperiment, PartAxes, doll_experiment};
 use bevy_deformable_sq::model::inertia::{
     InertiaParams, InertiaWorkspace, Velocity, step as inertia_step,
 };
@@ -267,24 +267,42 @@ fn app_step(c: &mut Criterion) {
     c.bench_function("app_step/11_models_963_nodes", |b| b.iter(|| app.update()));
 }
 
-/// The sandbox's load as the speed issue states it: the doll experiment's 11 parts (963 nodes
-/// each) on the horse image with the experiment's image forces, one simulation step each.
-fn app_step_image(c: &mut Criterion) {
+/// The doll experiment's image potential and its 11 parts placed from their four points each, as
+/// the sandbox's load and the image-force kernel start from.
+fn doll_parts() -> (
+    ImageExperiment,
+    Arc<ImagePotential>,
+    Vec<(DVec3, DQuat, SuperquadricParams)>,
+) {
     let e = doll_experiment();
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(e.image);
     let (w, h, lum) = load_luminance(&path).expect("shipped image");
     let potential = Arc::new(
         ImagePotential::new(w, h, lum, e.sigma, ImageFrame::default()).expect("potential"),
     );
+    let poses = e
+        .parts
+        .iter()
+        .map(|(_, pts)| {
+            PartAxes::from_points(&potential, *pts)
+                .expect("placement")
+                .pose()
+        })
+        .collect();
+    (e, potential, poses)
+}
+
+/// The sandbox's load as the speed issue states it: the doll experiment's 11 parts (963 nodes
+/// each) on the horse image with the experiment's image forces, one simulation step each.
+fn app_step_image(c: &mut Criterion) {
+    let (e, potential, poses) = doll_parts();
     let mut app = headless_app();
     let settings = ModelSettings {
         planar: true,
         fix_epsilon: true,
         ..default()
     };
-    for (_, pts) in &e.parts {
-        let axes = PartAxes::from_points(&potential, *pts).expect("placement");
-        let (translation, rotation, shape) = axes.pose();
+    for (translation, rotation, shape) in poses {
         app.world_mut().spawn((
             GlobalShape::from(shape),
             RigidState {
@@ -299,6 +317,34 @@ fn app_step_image(c: &mut Criterion) {
     app.update();
     c.bench_function("app_step/11_models_963_nodes_image", |b| {
         b.iter(|| app.update())
+    });
+}
+
+/// The image forces of the sandbox's load on one core: the doll experiment's forces (edge pull on
+/// the outline and the region force) on its 11 placed parts, each part's nodal forces cleared and
+/// gathered with buffers kept from step to step, as the plugin gathers them.
+fn image_forces(c: &mut Criterion) {
+    let (e, potential, poses) = doll_parts();
+    let forces = e.options.forces(potential);
+    let tess = Tessellation::new(e.options.k);
+    let parts: Vec<Vec<DVec3>> = poses
+        .into_iter()
+        .map(|(translation, rotation, shape)| {
+            let mut x = Vec::new();
+            ModelState::new(&tess, translation, rotation, shape).node_positions(&tess, &mut x);
+            x
+        })
+        .collect();
+    let mut out = NodalForces::new(tess.node_count());
+    let mut scratch = ImageScratch::default();
+    c.bench_function("image_forces/doll_11_parts_963n", |b| {
+        b.iter(|| {
+            for x in &parts {
+                out.clear(tess.node_count());
+                forces.accumulate_with(&tess, x, &mut out, &mut scratch);
+            }
+            black_box(&out);
+        })
     });
 }
 
@@ -403,6 +449,7 @@ criterion_group!(
     migration,
     app_step,
     app_step_image,
+    image_forces,
     memory_per_node,
     residuals_of_a_fit,
     ems_fits

@@ -28,7 +28,8 @@ use super::dynamics::{
 use super::fem::Tessellation;
 use super::fit::max_motion;
 use super::forces::image::{
-    DEFAULT_BAND, DEFAULT_IMAGE_BETA, ImageForces, ImagePotential, for_each_outline_edge,
+    DEFAULT_BAND, DEFAULT_IMAGE_BETA, ImageForces, ImagePotential, ImageScratch,
+    for_each_outline_edge,
 };
 use super::superquadric::SuperquadricParams;
 use bevy::math::{DMat3, DQuat, DVec2, DVec3};
@@ -428,6 +429,7 @@ pub fn fit_part(
     let outline_before = outline_potential(&forces.potential, &[(tess, &x)]);
     let mut ws = Workspace::default();
     let mut nf = NodalForces::new(tess.node_count());
+    let mut scratch = ImageScratch::default();
     ws.prepare(tess, &state);
     let stages: &[bool] = if opts.global_first {
         &[false, true]
@@ -443,7 +445,7 @@ pub fn fit_part(
         let mut at_rest = false;
         while steps < opts.max_steps {
             nf.clear(tess.node_count());
-            forces.accumulate(tess, &x, &mut nf);
+            forces.accumulate_with(tess, &x, &mut nf, &mut scratch);
             step_prepared(tess, &mut state, &nf, &params, &mut ws)?;
             steps += 1;
             global_steps += !local as usize;

@@ -12,6 +12,7 @@ use crate::model::dynamics::{
 };
 use crate::model::fem::Tessellation;
 use crate::model::fit::{FitOptions, Stage, StageClock};
+use crate::model::forces::image::ImageScratch;
 use crate::model::forces::range::{InfluenceMode, RangeForces};
 use crate::model::inertia::{InertiaParams, InertiaWorkspace, Velocity};
 use crate::model::joint::{Joint, JointEnd};
@@ -573,7 +574,8 @@ impl FitDriver {
     }
 }
 
-/// Per-model buffers reused every step (forces, workspace, node positions) and the state at spawn
+/// Per-model buffers reused every step (forces, workspace, node positions, the image forces'
+/// buffers) and the state at spawn
 /// for reset.
 #[derive(Component, Clone, Debug, Default)]
 pub struct Scratch {
@@ -582,6 +584,7 @@ pub struct Scratch {
     pub(crate) node_x: Vec<DVec3>,
     pub(crate) x_new: Vec<DVec3>,
     pub(crate) inertia_workspace: InertiaWorkspace,
+    pub(crate) image: ImageScratch,
     pub(crate) initial: Option<(RigidState, GlobalShape, LocalDofs)>,
 }
 

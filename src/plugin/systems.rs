@@ -216,9 +216,12 @@ pub fn gather_forces(
                     .accumulate(tess, &scratch.node_x, &mut scratch.forces);
             }
             if let Some(image) = image {
-                image
-                    .forces
-                    .accumulate(tess, &scratch.node_x, &mut scratch.forces);
+                image.forces.accumulate_with(
+                    tess,
+                    &scratch.node_x,
+                    &mut scratch.forces,
+                    &mut scratch.image,
+                );
             }
             for spring in springs.map(|s| s.0.as_slice()).unwrap_or(&[]) {
                 let at = tess.locate(spring.u, spring.v);

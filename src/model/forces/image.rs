@@ -298,9 +298,9 @@ impl ImagePotential {
         if !x.is_finite() || !self.contains(x) {
             return false;
         }
-        let p = self.to_pixel(x).round();
-        let c = (p.x.max(0.0) as usize).min(self.width - 1);
-        let r = (p.y.max(0.0) as usize).min(self.height - 1);
+        let p = self.to_pixel(x);
+        let c = nearest_index(p.x).min(self.width - 1);
+        let r = nearest_index(p.y).min(self.height - 1);
         self.foreground[r * self.width + c]
     }
 
@@ -348,8 +348,10 @@ impl ImagePotential {
         let p = self.to_pixel(x);
         let c = p.x.clamp(0.0, (self.width - 1) as f64);
         let r = p.y.clamp(0.0, (self.height - 1) as f64);
-        let c0 = (c.floor() as usize).min(self.width - 2);
-        let r0 = (r.floor() as usize).min(self.height - 2);
+        // c, r ≥ 0 after the clamp, so truncation is the floor (without a libm call: `floor` is
+        // not an instruction on the default x86-64 target).
+        let c0 = (c as usize).min(self.width - 2);
+        let r0 = (r as usize).min(self.height - 2);
         let (s, t) = (c - c0 as f64, r - r0 as f64);
         let i = r0 * self.width + c0;
         Some((
@@ -379,6 +381,22 @@ impl ImagePotential {
     }
 }
 
+/// `p.round().max(0.0) as usize` (the nearest pixel index, halves away from zero, nothing below
+/// 0) for every `p`, without `round`, which is a libm call on the default x86-64 target.
+fn nearest_index(p: f64) -> usize {
+    // Every f64 from 2⁵² up is an integer.
+    const INTEGRAL: f64 = 4_503_599_627_370_496.0;
+    if p.is_nan() || p <= 0.0 {
+        0
+    } else if p >= INTEGRAL {
+        p as usize
+    } else {
+        // Below 2⁵² the truncation and the fraction p − ⌊p⌋ are exact.
+        let whole = p as usize;
+        whole + usize::from(p - whole as f64 >= 0.5)
+    }
+}
+
 /// Σ_k N_k v_k over the four pixels of a [`ImagePotential::cell`] lookup.
 fn bilinear<T>(values: &[T], (idx, w): &([usize; 4], [f64; 4])) -> T
 where
@@ -400,18 +418,48 @@ pub fn projected_facing(x: &[DVec3], t: &[u32; 3]) -> f64 {
 
 /// Calls `f(a, b)` for every edge of the projected outline (the occluding contour seen along z):
 /// the edges whose two triangles face opposite ways.
-pub fn for_each_outline_edge(tess: &Tessellation, x: &[DVec3], mut f: impl FnMut(u32, u32)) {
+pub fn for_each_outline_edge(tess: &Tessellation, x: &[DVec3], f: impl FnMut(u32, u32)) {
+    for_each_outline_edge_with(tess, x, &mut Vec::new(), f);
+}
+
+/// [`for_each_outline_edge`] with a buffer for the triangles' facings that the caller keeps, so
+/// that a search allocates nothing once the buffer has grown.
+pub fn for_each_outline_edge_with(
+    tess: &Tessellation,
+    x: &[DVec3],
+    facing: &mut Vec<bool>,
+    mut f: impl FnMut(u32, u32),
+) {
     // Each triangle's facing once, not once for each of its three edges.
-    let facing: Vec<bool> = tess
-        .triangles()
-        .iter()
-        .map(|t| projected_facing(x, t) > 0.0)
-        .collect();
+    facing.clear();
+    facing.extend(
+        tess.triangles()
+            .iter()
+            .map(|t| projected_facing(x, t) > 0.0),
+    );
     for &[a, b, t1, t2] in &tess.edges {
         if facing[t1 as usize] != facing[t2 as usize] {
             f(a, b);
         }
     }
+}
+
+/// The buffers [`ImageForces::accumulate_with`] reuses from step to step: which nodes act and
+/// each triangle's projected facing. A model that keeps one allocates nothing per step.
+#[derive(Clone, Debug, Default)]
+pub struct ImageScratch {
+    acting: Vec<bool>,
+    facing: Vec<bool>,
+    normals: Vec<DVec3>,
+}
+
+/// True when the region force's normals are cheaper from one pass over every triangle
+/// ([`Tessellation::vertex_normals`]) than node by node ([`Tessellation::vertex_normal`]) for
+/// `acting` of `nodes` nodes. Node by node, each of a node's six triangles is crossed for that
+/// node alone; the pass crosses each of the 2k² triangles once and normalises every node, so it
+/// costs about what a third of the nodes cost one by one. Both give the same normals to the bit.
+fn normals_in_one_pass(acting: usize, nodes: usize) -> bool {
+    3 * acting > nodes
 }
 
 /// The image forces on one model: a shared potential, the strength β and the band.
@@ -457,10 +505,21 @@ impl ImageForces {
     /// The nodes that feel the image: in the band, on the image, and (with `outline_only`) on the
     /// projected outline.
     pub fn acting_nodes(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut Vec<bool>) {
+        self.acting_nodes_with(tess, node_x, out, &mut Vec::new());
+    }
+
+    /// [`Self::acting_nodes`] with the outline search's buffer of facings.
+    fn acting_nodes_with(
+        &self,
+        tess: &Tessellation,
+        node_x: &[DVec3],
+        out: &mut Vec<bool>,
+        facing: &mut Vec<bool>,
+    ) {
         out.clear();
         if self.outline_only {
             out.resize(node_x.len(), false);
-            for_each_outline_edge(tess, node_x, |a, b| {
+            for_each_outline_edge_with(tess, node_x, facing, |a, b| {
                 out[a as usize] = true;
                 out[b as usize] = true;
             });
@@ -475,32 +534,58 @@ impl ImageForces {
     /// Adds f_i = β A_i (∂P/∂x, ∂P/∂y, 0) (eq. 23) and the damping weight κ_i of the module docs
     /// to every acting node.
     pub fn accumulate(&self, tess: &Tessellation, node_x: &[DVec3], out: &mut NodalForces) {
+        self.accumulate_with(tess, node_x, out, &mut ImageScratch::default());
+    }
+
+    /// [`Self::accumulate`] with buffers the caller keeps from step to step, the same forces to
+    /// the bit. When few nodes act (on the outline of a rounded part, a few percent of them) the
+    /// region force's normals are computed at the acting nodes alone
+    /// ([`Tessellation::vertex_normal`]); when many do, in one pass over the triangles.
+    pub fn accumulate_with(
+        &self,
+        tess: &Tessellation,
+        node_x: &[DVec3],
+        out: &mut NodalForces,
+        scratch: &mut ImageScratch,
+    ) {
         let kappa = self.beta * self.potential.curvature_scale();
-        let mut acting = Vec::new();
-        self.acting_nodes(tess, node_x, &mut acting);
-        if self.region > 0.0 {
+        let ImageScratch {
+            acting,
+            facing,
+            normals,
+        } = scratch;
+        self.acting_nodes_with(tess, node_x, acting, facing);
+        let push = (self.region > 0.0).then(|| {
             let sigma_w = self.potential.sigma() * self.potential.pitch();
-            let push = self.region * self.beta * self.potential.p_ref() / sigma_w;
-            let mut normals = Vec::new();
-            tess.vertex_normals(node_x, &mut normals);
-            for (i, &x) in node_x.iter().enumerate() {
-                let n = normals[i].truncate().normalize_or_zero();
-                if acting[i] && n != DVec2::ZERO {
-                    let sign = if self.potential.in_foreground(x.truncate()) {
-                        1.0
-                    } else {
-                        -1.0
-                    };
-                    out.force[i] += (sign * push * tess.node_area[i] * n).extend(0.0);
-                }
-            }
+            self.region * self.beta * self.potential.p_ref() / sigma_w
+        });
+        let one_pass = push.is_some()
+            && normals_in_one_pass(acting.iter().filter(|&&a| a).count(), node_x.len());
+        if one_pass {
+            tess.vertex_normals(node_x, normals);
         }
         for (i, &x) in node_x.iter().enumerate() {
             if !acting[i] {
                 continue;
             }
-            let (g, p) = self.potential.gradient_and_potential_at(x.truncate());
             let a = tess.node_area[i];
+            if let Some(push) = push {
+                let normal = if one_pass {
+                    normals[i]
+                } else {
+                    tess.vertex_normal(node_x, i)
+                };
+                let n = normal.truncate().normalize_or_zero();
+                if n != DVec2::ZERO {
+                    let sign = if self.potential.in_foreground(x.truncate()) {
+                        1.0
+                    } else {
+                        -1.0
+                    };
+                    out.force[i] += (sign * push * a * n).extend(0.0);
+                }
+            }
+            let (g, p) = self.potential.gradient_and_potential_at(x.truncate());
             let near_edge = (p / self.potential.p_ref()).clamp(0.0, 1.0);
             out.force[i] += self.beta * a * DVec3::new(g.x, g.y, 0.0);
             out.stiffness[i] += kappa * a * (FLAT_WEIGHT + (1.0 - FLAT_WEIGHT) * near_edge);
@@ -587,6 +672,18 @@ mod tests {
             }
         }
         v
+    }
+
+    /// A bright disc (0.9) of radius `r` pixels about pixel (⌊w/2⌋, ⌊h/2⌋) on a dark background
+    /// (0.1).
+    fn disc(width: usize, height: usize, r: f64) -> Vec<f64> {
+        let centre = ((width / 2) as f64, (height / 2) as f64);
+        (0..width * height)
+            .map(|i| {
+                let (c, row) = ((i % width) as f64 - centre.0, (i / width) as f64 - centre.1);
+                if c * c + row * row < r * r { 0.9 } else { 0.1 }
+            })
+            .collect()
     }
 
     #[test]
@@ -693,13 +790,7 @@ mod tests {
     fn lookups_at_pixel_centres_read_each_pixels_own_potential_and_foreground() {
         // A bright disc on a dark background: foreground and background pixels both.
         let (w, h) = (23, 17);
-        let lum: Vec<f64> = (0..w * h)
-            .map(|i| {
-                let (c, r) = ((i % w) as f64 - 11.0, (i / w) as f64 - 8.0);
-                if c * c + r * r < 25.0 { 0.9 } else { 0.1 }
-            })
-            .collect();
-        let p = ImagePotential::new(w, h, lum, 1.0, ImageFrame::default()).unwrap();
+        let p = ImagePotential::new(w, h, disc(w, h, 5.0), 1.0, ImageFrame::default()).unwrap();
         let mut foreground = 0;
         for row in 0..h {
             for col in 0..w {
@@ -794,6 +885,134 @@ mod tests {
         assert_eq!(
             ImagePotential::new(4, 4, vec![0.5; 16], 1.0, bad),
             Err(ImageError::BadFrame)
+        );
+    }
+
+    #[test]
+    fn nearest_index_is_round_clamped_at_zero_for_every_kind_of_value() {
+        let mut values = vec![
+            f64::NEG_INFINITY,
+            -1e300,
+            -2.5,
+            -0.5,
+            -0.49999999999999994,
+            -0.0,
+            0.0,
+            f64::MIN_POSITIVE,
+            0.49999999999999994,
+            0.5,
+            0.5000000000000001,
+            1.5,
+            2.4999999999999996,
+            2.5,
+            399.5,
+            327.49999999999994,
+            1e15 + 0.5,
+            4_503_599_627_370_495.5,
+            4_503_599_627_370_496.0,
+            4_503_599_627_370_497.0,
+            1e19,
+            1e300,
+            f64::INFINITY,
+            f64::NAN,
+        ];
+        // Quarter and half pixels, and values just either side of each half.
+        for i in -8..1700 {
+            let p = i as f64 * 0.25;
+            values.extend([p, p.next_down(), p.next_up()]);
+        }
+        for p in values {
+            assert_eq!(nearest_index(p), p.round().max(0.0) as usize, "p = {p:e}");
+        }
+    }
+
+    #[test]
+    fn forces_with_kept_buffers_equal_the_forces_from_every_nodes_normals_to_the_bit() {
+        use crate::model::dynamics::ModelState;
+        use crate::model::superquadric::SuperquadricParams;
+        // A bright disc on a dark background, and models that straddle its edge, so that the
+        // region force pushes some acting nodes out and pulls others in.
+        let (w, h) = (90, 90);
+        let potential = Arc::new(
+            ImagePotential::new(w, h, disc(w, h, 20.0), 2.0, ImageFrame::default()).unwrap(),
+        );
+        let shape = SuperquadricParams {
+            a: 0.3,
+            a1: 1.0,
+            a2: 0.5,
+            a3: 0.7,
+            e1: 0.6,
+            e2: 1.3,
+        };
+        // One scratch for every model and option: a kept buffer from a larger model must not
+        // leak into a smaller one's forces.
+        let mut scratch = ImageScratch::default();
+        // How many cases took the node-by-node normals and the one-pass normals.
+        let mut paths = [0; 2];
+        for (k, outline_only, region) in [(20, true, 0.05), (9, true, 0.05), (12, false, 0.2)] {
+            let forces = ImageForces {
+                potential: potential.clone(),
+                beta: 1.5,
+                band: 0.3,
+                outline_only,
+                region,
+            };
+            let tess = Tessellation::new(k);
+            let state = ModelState::new(
+                &tess,
+                DVec3::new(0.12, -0.05, 0.02),
+                bevy::math::DQuat::from_rotation_x(0.7) * bevy::math::DQuat::from_rotation_z(0.4),
+                shape,
+            );
+            let mut x = Vec::new();
+            state.node_positions(&tess, &mut x);
+            let mut fast = NodalForces::new(tess.node_count());
+            forces.accumulate_with(&tess, &x, &mut fast, &mut scratch);
+            // The reference: every node's normal from `vertex_normals`, the region force in a
+            // pass of its own before the edge force, as the forces were first written.
+            let mut reference = NodalForces::new(tess.node_count());
+            let mut acting = Vec::new();
+            forces.acting_nodes(&tess, &x, &mut acting);
+            let mut normals = Vec::new();
+            tess.vertex_normals(&x, &mut normals);
+            let sigma_w = potential.sigma() * potential.pitch();
+            let push = region * forces.beta * potential.p_ref() / sigma_w;
+            let (mut pushed, mut pulled) = (0, 0);
+            for (i, &xi) in x.iter().enumerate() {
+                let n = normals[i].truncate().normalize_or_zero();
+                if acting[i] && n != DVec2::ZERO {
+                    let inside = potential.in_foreground(xi.truncate());
+                    (pushed, pulled) =
+                        (pushed + usize::from(inside), pulled + usize::from(!inside));
+                    let sign = if inside { 1.0 } else { -1.0 };
+                    reference.force[i] += (sign * push * tess.node_area[i] * n).extend(0.0);
+                }
+            }
+            let kappa = forces.beta * potential.curvature_scale();
+            for (i, &xi) in x.iter().enumerate().filter(|(i, _)| acting[*i]) {
+                let (g, p) = potential.gradient_and_potential_at(xi.truncate());
+                let a = tess.node_area[i];
+                let near_edge = (p / potential.p_ref()).clamp(0.0, 1.0);
+                reference.force[i] += forces.beta * a * DVec3::new(g.x, g.y, 0.0);
+                reference.stiffness[i] +=
+                    kappa * a * (FLAT_WEIGHT + (1.0 - FLAT_WEIGHT) * near_edge);
+            }
+            assert!(
+                pushed > 0 && pulled > 0,
+                "k = {k}: {pushed} pushed, {pulled} pulled"
+            );
+            let count = acting.iter().filter(|&&a| a).count();
+            paths[usize::from(normals_in_one_pass(count, x.len()))] += 1;
+            assert_eq!(fast.force, reference.force, "k = {k}");
+            assert_eq!(fast.stiffness, reference.stiffness, "k = {k}");
+            // And the convenience form, which allocates its buffers afresh.
+            let mut fresh = NodalForces::new(tess.node_count());
+            forces.accumulate(&tess, &x, &mut fresh);
+            assert_eq!(fresh.force, reference.force, "k = {k}");
+        }
+        assert!(
+            paths[0] > 0 && paths[1] > 0,
+            "both ways to the normals: {paths:?}"
         );
     }
 
