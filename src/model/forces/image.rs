@@ -382,7 +382,8 @@ impl ImagePotential {
 }
 
 /// `p.round().max(0.0) as usize` (the nearest pixel index, halves away from zero, nothing below
-/// 0) for every `p`, without `round`, which is a libm call on the default x86-64 target.
+/// 0) for every `p`, without `round`, which is a function call, not an instruction, on the
+/// default x86-64 target.
 fn nearest_index(p: f64) -> usize {
     // Every f64 from 2⁵² up is an integer.
     const INTEGRAL: f64 = 4_503_599_627_370_496.0;
