@@ -295,10 +295,11 @@ impl ImagePotential {
 
     /// True when the pixel under a plane point is foreground (false off the image).
     pub fn in_foreground(&self, x: DVec2) -> bool {
-        if !x.is_finite() || !self.contains(x) {
-            return false;
-        }
-        let p = self.to_pixel(x);
+        self.locate(x).is_some_and(|p| self.foreground_at(p))
+    }
+
+    /// The foreground flag of the pixel nearest an image point.
+    fn foreground_at(&self, OnImage(p): OnImage) -> bool {
         let c = nearest_index(p.x).min(self.width - 1);
         let r = nearest_index(p.y).min(self.height - 1);
         self.foreground[r * self.width + c]
@@ -332,20 +333,35 @@ impl ImagePotential {
 
     /// True when the plane point lies on the image.
     pub fn contains(&self, x: DVec2) -> bool {
-        let p = self.to_pixel(x);
+        self.contains_pixel(self.to_pixel(x))
+    }
+
+    /// True when a pixel position lies on the image.
+    fn contains_pixel(&self, p: DVec2) -> bool {
         p.x >= -0.5
             && p.y >= -0.5
             && p.x <= self.width as f64 - 0.5
             && p.y <= self.height as f64 - 0.5
     }
 
-    /// The four pixels around a plane point and their bilinear weights N_k (the quadrilateral
-    /// element of Fig. 10 with a = b = 1); `None` off the image.
-    fn cell(&self, x: DVec2) -> Option<([usize; 4], [f64; 4])> {
-        if !x.is_finite() || !self.contains(x) {
+    /// The pixel position of a finite plane point on the image; `None` for any other point. The
+    /// lookups of one point share it, so its pixel position is computed once.
+    fn locate(&self, x: DVec2) -> Option<OnImage> {
+        if !x.is_finite() {
             return None;
         }
         let p = self.to_pixel(x);
+        self.contains_pixel(p).then_some(OnImage(p))
+    }
+
+    /// The four pixels around a plane point and their bilinear weights N_k (the quadrilateral
+    /// element of Fig. 10 with a = b = 1); `None` off the image.
+    fn cell(&self, x: DVec2) -> Option<([usize; 4], [f64; 4])> {
+        self.locate(x).map(|p| self.cell_at(p))
+    }
+
+    /// [`Self::cell`] of an image point.
+    fn cell_at(&self, OnImage(p): OnImage) -> ([usize; 4], [f64; 4]) {
         let c = p.x.clamp(0.0, (self.width - 1) as f64);
         let r = p.y.clamp(0.0, (self.height - 1) as f64);
         // c, r ≥ 0 after the clamp, so truncation is the floor (without a libm call: `floor` is
@@ -354,10 +370,10 @@ impl ImagePotential {
         let r0 = (r as usize).min(self.height - 2);
         let (s, t) = (c - c0 as f64, r - r0 as f64);
         let i = r0 * self.width + c0;
-        Some((
+        (
             [i, i + 1, i + self.width, i + self.width + 1],
             [(1.0 - s) * (1.0 - t), s * (1.0 - t), (1.0 - s) * t, s * t],
-        ))
+        )
     }
 
     /// P at a plane point, bilinear between pixels; 0 off the image.
@@ -375,11 +391,21 @@ impl ImagePotential {
     /// [`Self::gradient_at`] and [`Self::potential_at`] together, from one lookup of the pixel
     /// cell: the same values to the bit.
     pub fn gradient_and_potential_at(&self, x: DVec2) -> (DVec2, f64) {
-        self.cell(x).map_or((DVec2::ZERO, 0.0), |cell| {
+        self.gradient_and_potential_on(self.locate(x))
+    }
+
+    /// [`Self::gradient_and_potential_at`] of a located point (zero off the image).
+    fn gradient_and_potential_on(&self, at: Option<OnImage>) -> (DVec2, f64) {
+        at.map_or((DVec2::ZERO, 0.0), |p| {
+            let cell = self.cell_at(p);
             (bilinear(&self.grad, &cell), bilinear(&self.p, &cell))
         })
     }
 }
+
+/// The pixel position of a plane point that lies on the image ([`ImagePotential::locate`]).
+#[derive(Clone, Copy, Debug)]
+struct OnImage(DVec2);
 
 /// `p.round().max(0.0) as usize` (the nearest pixel index, halves away from zero, nothing below
 /// 0) for every `p`, without `round`, which is a function call, not an instruction, on the
@@ -524,8 +550,9 @@ impl ImageForces {
                 out[a as usize] = true;
                 out[b as usize] = true;
             });
-            for (flag, &x) in out.iter_mut().zip(node_x) {
-                *flag &= self.acts_on(x);
+            // Only the outline's nodes are looked up in the image.
+            for (flag, &x) in out.iter_mut().zip(node_x).filter(|(flag, _)| **flag) {
+                *flag = self.acts_on(x);
             }
         } else {
             out.extend(node_x.iter().map(|&x| self.acts_on(x)));
@@ -570,6 +597,7 @@ impl ImageForces {
                 continue;
             }
             let a = tess.node_area[i];
+            let at = self.potential.locate(x.truncate());
             if let Some(push) = push {
                 let normal = if one_pass {
                     normals[i]
@@ -578,7 +606,7 @@ impl ImageForces {
                 };
                 let n = normal.truncate().normalize_or_zero();
                 if n != DVec2::ZERO {
-                    let sign = if self.potential.in_foreground(x.truncate()) {
+                    let sign = if at.is_some_and(|p| self.potential.foreground_at(p)) {
                         1.0
                     } else {
                         -1.0
@@ -586,7 +614,7 @@ impl ImageForces {
                     out.force[i] += (sign * push * a * n).extend(0.0);
                 }
             }
-            let (g, p) = self.potential.gradient_and_potential_at(x.truncate());
+            let (g, p) = self.potential.gradient_and_potential_on(at);
             let near_edge = (p / self.potential.p_ref()).clamp(0.0, 1.0);
             out.force[i] += self.beta * a * DVec3::new(g.x, g.y, 0.0);
             out.stiffness[i] += kappa * a * (FLAT_WEIGHT + (1.0 - FLAT_WEIGHT) * near_edge);
