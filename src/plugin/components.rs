@@ -575,8 +575,7 @@ impl FitDriver {
 }
 
 /// Per-model buffers reused every step (forces, workspace, node positions, the image forces'
-/// buffers) and the state at spawn
-/// for reset.
+/// buffers) and the state at spawn for reset.
 #[derive(Component, Clone, Debug, Default)]
 pub struct Scratch {
     pub(crate) forces: NodalForces,

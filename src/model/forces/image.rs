@@ -364,8 +364,8 @@ impl ImagePotential {
     fn cell_at(&self, OnImage(p): OnImage) -> ([usize; 4], [f64; 4]) {
         let c = p.x.clamp(0.0, (self.width - 1) as f64);
         let r = p.y.clamp(0.0, (self.height - 1) as f64);
-        // c, r ≥ 0 after the clamp, so truncation is the floor (without a libm call: `floor` is
-        // not an instruction on the default x86-64 target).
+        // c, r ≥ 0 after the clamp, so truncation is the floor (without a call: `floor` is not
+        // an instruction on the default x86-64 target).
         let c0 = (c as usize).min(self.width - 2);
         let r0 = (r as usize).min(self.height - 2);
         let (s, t) = (c - c0 as f64, r - r0 as f64);
@@ -471,8 +471,9 @@ pub fn for_each_outline_edge_with(
     }
 }
 
-/// The buffers [`ImageForces::accumulate_with`] reuses from step to step: which nodes act and
-/// each triangle's projected facing. A model that keeps one allocates nothing per step.
+/// The buffers [`ImageForces::accumulate_with`] reuses from step to step: which nodes act, each
+/// triangle's projected facing, and the nodes' normals when they are computed in one pass. A
+/// model that keeps one allocates nothing per step.
 #[derive(Clone, Debug, Default)]
 pub struct ImageScratch {
     acting: Vec<bool>,
@@ -482,8 +483,8 @@ pub struct ImageScratch {
 
 /// True when the region force's normals are cheaper from one pass over every triangle
 /// ([`Tessellation::vertex_normals`]) than node by node ([`Tessellation::vertex_normal`]) for
-/// `acting` of `nodes` nodes. Node by node, each of a node's six triangles is crossed for that
-/// node alone; the pass crosses each of the 2k² triangles once and normalises every node, so it
+/// `acting` of `nodes` nodes. Node by node, each of a node's triangles (six, except at the poles)
+/// is crossed for that node alone; the pass crosses each of the 2k² triangles once and normalises every node, so it
 /// costs about what a third of the nodes cost one by one. Both give the same normals to the bit.
 fn normals_in_one_pass(acting: usize, nodes: usize) -> bool {
     3 * acting > nodes
