@@ -241,7 +241,12 @@ fn ems_fits(c: &mut Criterion) {
 /// cores by the plugin's parallel systems).
 fn headless_app() -> App {
     let mut app = App::new();
-    app.add_plugins((MinimalPlugins, DeformableSqPlugin::in_schedule(Update)));
+    app.add_plugins((
+        MinimalPlugins.set(TaskPoolPlugin {
+            task_pool_options: simulation_task_pools(),
+        }),
+        DeformableSqPlugin::in_schedule(Update),
+    ));
     app.insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_millis(
         16,
     )));

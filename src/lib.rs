@@ -37,7 +37,7 @@ pub mod prelude {
     pub use crate::plugin::{
         DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, ImageData, Inertia,
         LocalDofs, ModelSettings, PartJoint, RangeData, RigidState, SimControl, Spring,
-        SpringForces,
+        SpringForces, simulation_task_pools,
     };
     pub use crate::render::{ModelColor, ModelMesh};
 }

@@ -6,7 +6,7 @@ use bevy::app::PluginGroupBuilder;
 use bevy::prelude::*;
 use bevy::render::RenderPlugin;
 use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured, save_to_disk};
-use bevy_deformable_sq::prelude::SimControl;
+use bevy_deformable_sq::prelude::{SimControl, simulation_task_pools};
 use std::path::PathBuf;
 
 #[derive(Resource)]
@@ -33,9 +33,12 @@ pub fn args() -> Option<(PathBuf, u64)> {
     Some((PathBuf::from(path), steps))
 }
 
-/// `DefaultPlugins`, with synchronous pipeline compilation when a screenshot is asked for.
+/// `DefaultPlugins` with the compute pool on every core ([`simulation_task_pools`]), and with
+/// synchronous pipeline compilation when a screenshot is asked for.
 pub fn default_plugins() -> PluginGroupBuilder {
-    let plugins = DefaultPlugins.build();
+    let plugins = DefaultPlugins.build().set(TaskPoolPlugin {
+        task_pool_options: simulation_task_pools(),
+    });
     if args().is_some() {
         plugins.set(RenderPlugin {
             synchronous_pipeline_compilation: true,

@@ -36,6 +36,36 @@ pub enum DeformableSqSystems {
     WriteBack,
 }
 
+/// Task pools that give Bevy's compute pool, where the plugin's systems and their
+/// `par_iter_mut` over the models run, every core of the machine. Bevy's default
+/// ([`TaskPoolOptions::default`]) first gives a quarter of the cores (at least one each) to the
+/// I/O and async-compute pools and the compute pool what is left: one thread on a 2-core machine,
+/// so the models of a scene are stepped one after the other while the other core idles, and half
+/// of the cores on eight. The I/O and async-compute pools keep their threads here, which sleep
+/// while no asset loads. The pools are process-wide, made by the first app that builds a
+/// `TaskPoolPlugin`. Measured (BENCHMARKS.md, log entry 31): one frame of the sandbox's load, 11
+/// models with image forces, ×0.70 on 2 cores.
+///
+/// ```
+/// use bevy::prelude::*;
+/// use bevy::tasks::{ComputeTaskPool, available_parallelism};
+/// use bevy_deformable_sq::prelude::*;
+///
+/// let mut app = App::new();
+/// app.add_plugins((
+///     MinimalPlugins.set(TaskPoolPlugin {
+///         task_pool_options: simulation_task_pools(),
+///     }),
+///     DeformableSqPlugin::default(),
+/// ));
+/// assert_eq!(ComputeTaskPool::get().thread_num(), available_parallelism());
+/// ```
+pub fn simulation_task_pools() -> TaskPoolOptions {
+    let mut options = TaskPoolOptions::default();
+    options.compute.min_threads = bevy::tasks::available_parallelism();
+    options
+}
+
 /// Simulates deformable superquadrics. `schedule` is where the steps run: one step per run.
 pub struct DeformableSqPlugin {
     /// The schedule the [`DeformableSqSystems`] run in (default [`FixedUpdate`]).
