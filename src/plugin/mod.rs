@@ -92,6 +92,17 @@ impl DeformableSqPlugin {
 impl Plugin for DeformableSqPlugin {
     fn build(&self, app: &mut App) {
         use DeformableSqSystems::*;
+        if let Some(pool) = bevy::tasks::ComputeTaskPool::try_get() {
+            let cores = bevy::tasks::available_parallelism();
+            if pool.thread_num() < cores {
+                info!(
+                    "Bevy's compute pool, where the models step in parallel, has {} of {cores} \
+                     threads; `TaskPoolPlugin {{ task_pool_options: simulation_task_pools() }}` \
+                     gives it every core",
+                    pool.thread_num()
+                );
+            }
+        }
         app.init_resource::<FemMeshCache>()
             .register_type::<GlobalShape>()
             .register_type::<RigidState>()
