@@ -44,7 +44,7 @@ pub enum DeformableSqSystems {
 /// of the cores on eight. The I/O and async-compute pools keep their threads here, which sleep
 /// while no asset loads. The pools are process-wide, made by the first app that builds a
 /// `TaskPoolPlugin`. Measured (BENCHMARKS.md, log entry 31): one frame of the sandbox's load, 11
-/// models with image forces, ×0.70 on 2 cores.
+/// models with image forces, ×0.64–0.70 on 2 cores.
 ///
 /// ```
 /// use bevy::prelude::*;
