@@ -585,12 +585,69 @@ pub struct Scratch {
     pub(crate) inertia_workspace: InertiaWorkspace,
     pub(crate) image: ImageScratch,
     pub(crate) initial: Option<(RigidState, GlobalShape, LocalDofs)>,
+    /// The entity and the change ticks of its [`FemMesh`], [`RigidState`], [`GlobalShape`] and
+    /// [`LocalDofs`] ([`StateTicks`]) when `integrate` last left `workspace` prepared for the
+    /// state it wrote; `None` when the workspace holds no current positions. While the ticks are
+    /// unchanged nothing has written the state since, so the workspace's node positions are the
+    /// state's and the systems reuse them instead of computing them again.
+    pub(crate) prepared: Option<(Entity, StateTicks)>,
+}
+
+/// The change ticks of a model's [`FemMesh`], [`RigidState`], [`GlobalShape`] and [`LocalDofs`]:
+/// any write to one of them (a step, a reset, an inspector's edit, a new mesh) changes its tick.
+pub(crate) type StateTicks = [bevy::ecs::change_detection::Tick; 4];
+
+/// The [`StateTicks`] of a model's components as a system sees them.
+pub(crate) fn state_ticks(
+    fem: &impl DetectChanges,
+    rigid: &impl DetectChanges,
+    shape: &impl DetectChanges,
+    local: &impl DetectChanges,
+) -> StateTicks {
+    [
+        fem.last_changed(),
+        rigid.last_changed(),
+        shape.last_changed(),
+        local.last_changed(),
+    ]
 }
 
 impl Scratch {
     /// World node positions as of the last step.
     pub fn node_positions(&self) -> &[DVec3] {
         &self.node_x
+    }
+
+    /// True when `workspace` holds the node positions of `entity`'s state as its components
+    /// now stand (`ticks`), on a mesh of `n` nodes.
+    pub(crate) fn workspace_current(&self, entity: Entity, ticks: StateTicks, n: usize) -> bool {
+        self.prepared == Some((entity, ticks)) && self.workspace.world_positions().len() == n
+    }
+
+    /// The world node positions of `entity`'s state (its components' change ticks `ticks`)
+    /// into the buffer `which` picks: copied from the workspace when it holds them
+    /// ([`Self::workspace_current`]), computed by [`world_positions`] otherwise. Both give the
+    /// same values to the bit.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn current_positions(
+        &mut self,
+        which: fn(&mut Self) -> &mut Vec<DVec3>,
+        entity: Entity,
+        ticks: StateTicks,
+        tess: &Tessellation,
+        rigid: &RigidState,
+        shape: &GlobalShape,
+        local: &LocalDofs,
+    ) {
+        let current = self.workspace_current(entity, ticks, tess.node_count());
+        let mut out = std::mem::take(which(self));
+        if current {
+            out.clear();
+            out.extend_from_slice(self.workspace.world_positions());
+        } else {
+            world_positions(tess, rigid, shape, local, &mut out);
+        }
+        *which(self) = out;
     }
 }
 

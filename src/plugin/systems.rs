@@ -3,7 +3,7 @@
 //! (`par_iter_mut`).
 
 use super::components::*;
-use crate::model::dynamics::step;
+use crate::model::dynamics::{step, step_prepared};
 use crate::model::fit::{Stage, StageClock, max_motion};
 use crate::model::forces::range::Robust;
 use crate::model::inertia::{self, Velocity};
@@ -126,10 +126,11 @@ pub fn prepare(
 /// is reattached when it enters a stage, and otherwise when its driver says so (stage `Converge`).
 pub fn reassign(
     mut models: Query<(
-        &FemMesh,
-        &RigidState,
-        &GlobalShape,
-        &LocalDofs,
+        Entity,
+        Ref<FemMesh>,
+        Ref<RigidState>,
+        Ref<GlobalShape>,
+        Ref<LocalDofs>,
         &mut ModelSettings,
         &SimControl,
         &mut Scratch,
@@ -138,7 +139,19 @@ pub fn reassign(
     )>,
 ) {
     models.par_iter_mut().for_each(
-        |(fem, rigid, shape, local, mut settings, control, mut scratch, mut range, driver)| {
+        |(
+            entity,
+            fem,
+            rigid,
+            shape,
+            local,
+            mut settings,
+            control,
+            mut scratch,
+            mut range,
+            driver,
+        )| {
+            let ticks = state_ticks(&fem, &rigid, &shape, &local);
             let Some(tess) = fem.get() else { return };
             if !stepping(control) {
                 return;
@@ -176,8 +189,16 @@ pub fn reassign(
             if !due {
                 return;
             }
-            world_positions(tess, rigid, shape, local, &mut scratch.node_x);
             let scratch = &mut *scratch;
+            scratch.current_positions(
+                |s| &mut s.node_x,
+                entity,
+                ticks,
+                tess,
+                &rigid,
+                &shape,
+                &local,
+            );
             range.forces.reassign(tess, &scratch.node_x);
             range.reassignments += 1;
         },
@@ -188,10 +209,11 @@ pub fn reassign(
 /// user springs, spread to the nodes.
 pub fn gather_forces(
     mut models: Query<(
-        &FemMesh,
-        &RigidState,
-        &GlobalShape,
-        &LocalDofs,
+        Entity,
+        Ref<FemMesh>,
+        Ref<RigidState>,
+        Ref<GlobalShape>,
+        Ref<LocalDofs>,
         &SimControl,
         &mut Scratch,
         Option<&mut RangeData>,
@@ -200,16 +222,25 @@ pub fn gather_forces(
     )>,
 ) {
     models.par_iter_mut().for_each(
-        |(fem, rigid, shape, local, control, mut scratch, range, image, springs)| {
+        |(entity, fem, rigid, shape, local, control, mut scratch, range, image, springs)| {
+            let ticks = state_ticks(&fem, &rigid, &shape, &local);
             let Some(tess) = fem.get() else { return };
             if !stepping(control) {
                 return;
             }
             let scratch = &mut *scratch;
-            world_positions(tess, rigid, shape, local, &mut scratch.node_x);
+            scratch.current_positions(
+                |s| &mut s.node_x,
+                entity,
+                ticks,
+                tess,
+                &rigid,
+                &shape,
+                &local,
+            );
             scratch.forces.clear(tess.node_count());
             if let Some(mut range) = range {
-                let surface = model_surface(rigid, shape, local);
+                let surface = model_surface(&rigid, &shape, &local);
                 range.forces.migrate(tess, &scratch.node_x, Some(&surface));
                 range
                     .forces
@@ -294,7 +325,7 @@ pub fn joint_forces(
 pub fn integrate(
     mut models: Query<(
         Entity,
-        &FemMesh,
+        Ref<FemMesh>,
         &mut RigidState,
         &mut GlobalShape,
         &mut LocalDofs,
@@ -316,13 +347,18 @@ pub fn integrate(
             mut scratch,
             inertia,
         )| {
+            let ticks = state_ticks(&fem, &rigid, &shape, &local);
             let Some(tess) = fem.get() else { return };
             if !stepping(&control) {
                 return;
             }
+            // Read before `take_state`, which writes the local DOFs (and so their tick).
+            let prepared = scratch.workspace_current(entity, ticks, tess.node_count());
             let mut state = take_state(&rigid, &shape, &mut local);
             let scratch = &mut *scratch;
+            scratch.prepared = None;
             let params = settings.dynamics_at(control.steps);
+            let explicit = inertia.is_none();
             let stepped = match inertia {
                 Some(mut inertia) => {
                     let inertia = &mut *inertia;
@@ -336,6 +372,14 @@ pub fn integrate(
                         &mut scratch.inertia_workspace,
                     )
                 }
+                // The workspace already holds this state's node positions.
+                None if prepared => step_prepared(
+                    tess,
+                    &mut state,
+                    &scratch.forces,
+                    &params,
+                    &mut scratch.workspace,
+                ),
                 None => step(
                     tess,
                     &mut state,
@@ -344,6 +388,15 @@ pub fn integrate(
                     &mut scratch.workspace,
                 ),
             };
+            // The node positions of the state written below, for the systems after this one and
+            // the next step, when they are the components' (the stored deformation already
+            // within the bounds `take_state` would bring it to).
+            let reusable = explicit
+                && stepped.is_ok()
+                && state.deformation == state.deformation.clamped(state.shape.semi_axes());
+            if reusable {
+                scratch.workspace.prepare(tess, &state);
+            }
             match stepped {
                 Ok(report) => {
                     control.steps += 1;
@@ -359,6 +412,9 @@ pub fn integrate(
                 control.step_requests = control.step_requests.saturating_sub(1);
             }
             put_state(state, &mut rigid, &mut shape, &mut local);
+            if reusable {
+                scratch.prepared = Some((entity, state_ticks(&fem, &rigid, &shape, &local)));
+            }
         },
     );
 }
@@ -368,10 +424,11 @@ pub fn integrate(
 /// at rest (see [`StageClock::after_step`]); pauses the model when the fit is done.
 pub fn drive_fits(
     mut models: Query<(
-        &FemMesh,
-        &RigidState,
-        &GlobalShape,
-        &LocalDofs,
+        Entity,
+        Ref<FemMesh>,
+        Ref<RigidState>,
+        Ref<GlobalShape>,
+        Ref<LocalDofs>,
         &mut SimControl,
         &mut Scratch,
         &mut RangeData,
@@ -379,7 +436,8 @@ pub fn drive_fits(
     )>,
 ) {
     models.par_iter_mut().for_each(
-        |(fem, rigid, shape, local, mut control, mut scratch, mut range, mut driver)| {
+        |(entity, fem, rigid, shape, local, mut control, mut scratch, mut range, mut driver)| {
+            let ticks = state_ticks(&fem, &rigid, &shape, &local);
             let Some(tess) = fem.get() else { return };
             if driver.done || control.steps == driver.seen_steps {
                 return;
@@ -395,7 +453,15 @@ pub fn drive_fits(
                 driver.substepped_steps += 1;
             }
             let scratch = &mut *scratch;
-            world_positions(tess, rigid, shape, local, &mut scratch.x_new);
+            scratch.current_positions(
+                |s| &mut s.x_new,
+                entity,
+                ticks,
+                tess,
+                &rigid,
+                &shape,
+                &local,
+            );
             let motion = max_motion(&scratch.node_x, &scratch.x_new);
             std::mem::swap(&mut scratch.node_x, &mut scratch.x_new);
             let mut reassigned = false;
