@@ -597,6 +597,34 @@ pub struct Scratch {
 /// any write to one of them (a step, a reset, an inspector's edit, a new mesh) changes its tick.
 pub(crate) type StateTicks = [bevy::ecs::change_detection::Tick; 4];
 
+/// A model's mesh and state as the systems that only read them see them, with their change
+/// ticks ([`Scratch::current_positions`]).
+#[derive(bevy::ecs::query::QueryData)]
+pub struct ModelStateRef {
+    /// The model's entity.
+    pub entity: Entity,
+    /// Its mesh.
+    pub fem: Ref<'static, FemMesh>,
+    /// Its pose.
+    pub rigid: Ref<'static, RigidState>,
+    /// Its global shape.
+    pub shape: Ref<'static, GlobalShape>,
+    /// Its local displacements.
+    pub local: Ref<'static, LocalDofs>,
+}
+
+impl ModelStateRefItem<'_, '_> {
+    /// The components' [`StateTicks`].
+    pub(crate) fn ticks(&self) -> StateTicks {
+        state_ticks(&self.fem, &self.rigid, &self.shape, &self.local)
+    }
+
+    /// The model's continuous surface ([`model_surface`]).
+    pub fn surface(&self) -> ModelSurface<'_> {
+        model_surface(&self.rigid, &self.shape, &self.local)
+    }
+}
+
 /// The [`StateTicks`] of a model's components as a system sees them.
 pub(crate) fn state_ticks(
     fem: &impl DetectChanges,
@@ -624,28 +652,22 @@ impl Scratch {
         self.prepared == Some((entity, ticks)) && self.workspace.world_positions().len() == n
     }
 
-    /// The world node positions of `entity`'s state (its components' change ticks `ticks`)
-    /// into the buffer `which` picks: copied from the workspace when it holds them
-    /// ([`Self::workspace_current`]), computed by [`world_positions`] otherwise. Both give the
-    /// same values to the bit.
-    #[allow(clippy::too_many_arguments)]
+    /// The world node positions of `model`'s state into the buffer `which` picks: copied from
+    /// the workspace when it holds them ([`Self::workspace_current`]), computed by
+    /// [`world_positions`] otherwise. Both give the same values to the bit.
     pub(crate) fn current_positions(
         &mut self,
         which: fn(&mut Self) -> &mut Vec<DVec3>,
-        entity: Entity,
-        ticks: StateTicks,
+        model: &ModelStateRefItem,
         tess: &Tessellation,
-        rigid: &RigidState,
-        shape: &GlobalShape,
-        local: &LocalDofs,
     ) {
-        let current = self.workspace_current(entity, ticks, tess.node_count());
+        let current = self.workspace_current(model.entity, model.ticks(), tess.node_count());
         let mut out = std::mem::take(which(self));
         if current {
             out.clear();
             out.extend_from_slice(self.workspace.world_positions());
         } else {
-            world_positions(tess, rigid, shape, local, &mut out);
+            world_positions(tess, &model.rigid, &model.shape, &model.local, &mut out);
         }
         *which(self) = out;
     }

@@ -126,11 +126,7 @@ pub fn prepare(
 /// is reattached when it enters a stage, and otherwise when its driver says so (stage `Converge`).
 pub fn reassign(
     mut models: Query<(
-        Entity,
-        Ref<FemMesh>,
-        Ref<RigidState>,
-        Ref<GlobalShape>,
-        Ref<LocalDofs>,
+        ModelStateRef,
         &mut ModelSettings,
         &SimControl,
         &mut Scratch,
@@ -139,20 +135,8 @@ pub fn reassign(
     )>,
 ) {
     models.par_iter_mut().for_each(
-        |(
-            entity,
-            fem,
-            rigid,
-            shape,
-            local,
-            mut settings,
-            control,
-            mut scratch,
-            mut range,
-            driver,
-        )| {
-            let ticks = state_ticks(&fem, &rigid, &shape, &local);
-            let Some(tess) = fem.get() else { return };
+        |(model, mut settings, control, mut scratch, mut range, driver)| {
+            let Some(tess) = model.fem.get() else { return };
             if !stepping(control) {
                 return;
             }
@@ -190,15 +174,7 @@ pub fn reassign(
                 return;
             }
             let scratch = &mut *scratch;
-            scratch.current_positions(
-                |s| &mut s.node_x,
-                entity,
-                ticks,
-                tess,
-                &rigid,
-                &shape,
-                &local,
-            );
+            scratch.current_positions(|s| &mut s.node_x, &model, tess);
             range.forces.reassign(tess, &scratch.node_x);
             range.reassignments += 1;
         },
@@ -209,11 +185,7 @@ pub fn reassign(
 /// user springs, spread to the nodes.
 pub fn gather_forces(
     mut models: Query<(
-        Entity,
-        Ref<FemMesh>,
-        Ref<RigidState>,
-        Ref<GlobalShape>,
-        Ref<LocalDofs>,
+        ModelStateRef,
         &SimControl,
         &mut Scratch,
         Option<&mut RangeData>,
@@ -221,26 +193,18 @@ pub fn gather_forces(
         Option<&SpringForces>,
     )>,
 ) {
-    models.par_iter_mut().for_each(
-        |(entity, fem, rigid, shape, local, control, mut scratch, range, image, springs)| {
-            let ticks = state_ticks(&fem, &rigid, &shape, &local);
-            let Some(tess) = fem.get() else { return };
+    models
+        .par_iter_mut()
+        .for_each(|(model, control, mut scratch, range, image, springs)| {
+            let Some(tess) = model.fem.get() else { return };
             if !stepping(control) {
                 return;
             }
             let scratch = &mut *scratch;
-            scratch.current_positions(
-                |s| &mut s.node_x,
-                entity,
-                ticks,
-                tess,
-                &rigid,
-                &shape,
-                &local,
-            );
+            scratch.current_positions(|s| &mut s.node_x, &model, tess);
             scratch.forces.clear(tess.node_count());
             if let Some(mut range) = range {
-                let surface = model_surface(&rigid, &shape, &local);
+                let surface = model.surface();
                 range.forces.migrate(tess, &scratch.node_x, Some(&surface));
                 range
                     .forces
@@ -263,8 +227,7 @@ pub fn gather_forces(
                     spring.stiffness,
                 );
             }
-        },
-    );
+        });
 }
 
 /// Stage `GatherForces`, after the models' own forces: each [`PartJoint`] adds its constraint
@@ -424,21 +387,17 @@ pub fn integrate(
 /// at rest (see [`StageClock::after_step`]); pauses the model when the fit is done.
 pub fn drive_fits(
     mut models: Query<(
-        Entity,
-        Ref<FemMesh>,
-        Ref<RigidState>,
-        Ref<GlobalShape>,
-        Ref<LocalDofs>,
+        ModelStateRef,
         &mut SimControl,
         &mut Scratch,
         &mut RangeData,
         &mut FitDriver,
     )>,
 ) {
-    models.par_iter_mut().for_each(
-        |(entity, fem, rigid, shape, local, mut control, mut scratch, mut range, mut driver)| {
-            let ticks = state_ticks(&fem, &rigid, &shape, &local);
-            let Some(tess) = fem.get() else { return };
+    models
+        .par_iter_mut()
+        .for_each(|(model, mut control, mut scratch, mut range, mut driver)| {
+            let Some(tess) = model.fem.get() else { return };
             if driver.done || control.steps == driver.seen_steps {
                 return;
             }
@@ -453,15 +412,7 @@ pub fn drive_fits(
                 driver.substepped_steps += 1;
             }
             let scratch = &mut *scratch;
-            scratch.current_positions(
-                |s| &mut s.x_new,
-                entity,
-                ticks,
-                tess,
-                &rigid,
-                &shape,
-                &local,
-            );
+            scratch.current_positions(|s| &mut s.x_new, &model, tess);
             let motion = max_motion(&scratch.node_x, &scratch.x_new);
             std::mem::swap(&mut scratch.node_x, &mut scratch.x_new);
             let mut reassigned = false;
@@ -490,8 +441,7 @@ pub fn drive_fits(
                 driver.done = true;
                 control.paused = true;
             }
-        },
-    );
+        });
 }
 
 /// Stage `WriteBack`: the model frame into the entity's [`Transform`] (the mesh's vertices are
