@@ -1,4 +1,5 @@
 //! Applied forces (section V): data turned into point forces on the model's surface.
 
 pub mod image;
+pub mod nearest;
 pub mod range;

@@ -8,9 +8,11 @@
 //!
 //! **Points of influence.** [`InfluenceMode::NearestNode`] is the paper's: u_r is the node nearest
 //! r, found again every N steps. The paper did that by brute force in O(mn); [`nearest_indices`]
-//! uses a k-d tree (kiddo) in O((m + n) log n) and gives the same assignment as
-//! [`nearest_indices_brute`] (tested); [`RangeForces`] searches its points in a spatial order
-//! fixed once ([`QueryOrder`]), which gives the same answers faster.
+//! buckets the nodes into a uniform grid ([`super::nearest::NodeGrid`], O(n)) and scans the cells
+//! around each point, with a k-d tree (kiddo, O(log n) a query) behind it for points far from
+//! every node, and gives the same assignment as [`nearest_indices_brute`] (tested);
+//! [`RangeForces`] searches its points in a spatial order fixed once ([`QueryOrder`]), which
+//! gives the same answers faster.
 //! [`InfluenceMode::Migrating`] is the paper's alternative (Fig. 3): each point of influence
 //! slides over the surface by the tangential components of its force until they vanish, at the
 //! foot of the perpendicular from r; a reassignment then only replaces it when the nearest node
@@ -61,6 +63,7 @@
 
 use crate::model::dynamics::{ModelSurface, NodalForces};
 use crate::model::fem::{ElementPoint, Tessellation};
+use crate::model::forces::nearest::NodeGrid;
 use crate::model::simd::with_avx2;
 use crate::model::superquadric::Trig;
 use bevy::math::DVec3;
@@ -246,8 +249,13 @@ pub const WEIGHTS_SETTLED: f64 = 0.01;
 pub const MIGRATION_AT_FOOT: f64 = 1e-3;
 
 /// For every query point, the index of the nearest point of `nodes` (usually the model's nodes),
-/// by a k-d tree over `nodes`. Falls back to [`nearest_indices_brute`] if the tree cannot be built.
+/// by a grid of `nodes` ([`NodeGrid::nearest_each`]). Where no grid can be built (a non-finite
+/// node, or none) a k-d tree over `nodes` answers, and [`nearest_indices_brute`] where that
+/// cannot be built either.
 pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
+    if let Some(grid) = NodeGrid::new(nodes) {
+        return grid.nearest_each(points);
+    }
     match kd_tree(nodes) {
         Some(tree) => query_nearest(&tree, points),
         None => nearest_indices_brute(nodes, points),
@@ -275,8 +283,8 @@ fn query_nearest(tree: &ImmutableKdTree<f64, 3>, points: &[DVec3]) -> Vec<u32> {
 
 /// The k-d tree of a [`RangeForces`]' own data points, for the coverage springs' search of each
 /// node's nearest point: built at the first reassignment that needs it and kept, since the
-/// points never change (it used to be built again at every reassignment). It is the tree
-/// [`nearest_indices`] builds over the same points, so the answers are the same to the bit.
+/// points never change (it used to be built again at every reassignment). Its answers are
+/// [`nearest_indices`]' over the same points (the same indices but where two points tie).
 /// Shared between clones; a cache of the points, so it takes no part in equality.
 #[derive(Clone, Default)]
 enum PointTree {
@@ -319,9 +327,9 @@ impl PointTree {
 
 /// Query points kept in a spatially coherent order (Morton order of a 1024³ grid over their
 /// bounding box) for repeated nearest-node searches against changing nodes: consecutive queries
-/// then walk the same branches of the k-d tree and find its leaves in cache. The answers are
-/// [`nearest_indices`]'s to the bit (each query is independent of the others; tested); only the
-/// time changes. A fit's data points never change while its nodes move, so [`RangeForces`]
+/// then read the same cells of the grid (or branches of the k-d tree) in cache. The answers are
+/// [`nearest_indices`]' nearest nodes (the same indices but where two nodes tie, since the order
+/// decides which queries the tree answers; tested); only the time changes. A fit's data points never change while its nodes move, so [`RangeForces`]
 /// orders its points once and searches in that order at every reassignment.
 /// Measured (`cargo bench --bench kernels -- reassignment`, BENCHMARKS.md log entry 15): 100 000
 /// points against 19 883 nodes searched in 0.74–0.98 of the time they take in random order
