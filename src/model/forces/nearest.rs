@@ -7,7 +7,9 @@
 //! that block could hold a nearer node, the cells within the best distance found so far, which
 //! must hold the nearest node. Each row of a block along x is one contiguous run of the sorted
 //! nodes. A query far from every node (its block would exceed [`MAX_BLOCK_CELLS`] cells) is
-//! answered by a k-d tree (kiddo) over the nodes, built on the first such query.
+//! answered by a k-d tree (kiddo) over the nodes, built on the first such query, and so is, in
+//! [`NodeGrid::nearest_each`], a query after one that was more than [`FAR_CELLS`] cells from its
+//! nearest node.
 //!
 //! The answer is the nearest node: [`super::range::nearest_indices_brute`]'s, since both compare
 //! the same squared distances computed the same way. Between nodes at the same distance the grid
@@ -52,7 +54,8 @@ pub struct NodeGrid<'a> {
     inv_h: f64,
     /// Cells along x, y and z.
     dims: [usize; 3],
-    /// The sorted nodes of cell c = x + dims[0] (y + dims[1] z) are `cell_start[c]..cell_start[c + 1]`.
+    /// The sorted nodes of cell c = x + dims[0] (y + dims[1] z) are
+    /// `cell_start[c]..cell_start[c + 1]`.
     cell_start: Vec<u32>,
     /// The nodes' coordinates, sorted by cell.
     xs: Vec<f64>,

@@ -329,8 +329,9 @@ impl PointTree {
 /// bounding box) for repeated nearest-node searches against changing nodes: consecutive queries
 /// then read the same cells of the grid (or branches of the k-d tree) in cache. The answers are
 /// [`nearest_indices`]' nearest nodes (the same indices but where two nodes tie, since the order
-/// decides which queries the tree answers; tested); only the time changes. A fit's data points never change while its nodes move, so [`RangeForces`]
-/// orders its points once and searches in that order at every reassignment.
+/// decides which queries the tree answers; tested); only the time changes. A fit's data points
+/// never change while its nodes move, so [`RangeForces`] orders its points once and searches in
+/// that order at every reassignment.
 /// Measured (`cargo bench --bench kernels -- reassignment`, BENCHMARKS.md log entry 15): 100 000
 /// points against 19 883 nodes searched in 0.74–0.98 of the time they take in random order
 /// (medians of interleaved runs 0.86–0.87), for a one-time ordering that costs about a sixth of
