@@ -37,7 +37,7 @@ const MAX_PASSES: usize = 4;
 
 /// [`NodeGrid::nearest_each`] hands a query to the k-d tree when the query before it was
 /// farther than this many cells' widths from its nearest node.
-pub const FAR_CELLS: f64 = 1.0;
+pub const FAR_CELLS: f64 = 3.0;
 
 /// A block of more cells than this (7³) is not scanned: the query goes to the k-d tree.
 pub const MAX_BLOCK_CELLS: usize = 343;
