@@ -1,9 +1,6 @@
 //! Benchmarks of the kernels and of whole fits (issue: speed). Run with
 //! `cargo bench --bench kernels`; figures and targets are in BENCHMARKS.md.
 
-use bevy::math::{DQuat, DVec3};
-use bevy::prelude::*;
-use bevy::time::TimeUpdateStrategy;
 use bevy_deformable_sq::io::{load_luminance, load_points};
 use bevy_deformable_sq::model::dynamics::{
     DynamicsParams, ModelState, NodalForces, Workspace, step_prepared,
@@ -19,9 +16,9 @@ use bevy_deformable_sq::model::inertia::{
     InertiaParams, InertiaWorkspace, Velocity, step as inertia_step,
 };
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
-use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use glam::{DQuat, DVec3};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::hint::black_box;
 use std::path::Path;
@@ -217,7 +214,7 @@ fn ems_fits(c: &mut Criterion) {
             ("global_defaults", true, true),
             ("local_defaults", false, true),
         ] {
-            // The paper's forces and stiffness (`fit --paper-forces`), or the command-line
+            // The paper's forces and stiffness (`dsq fit --paper-forces`), or the command-line
             // fitter's defaults for a cloud (`fit`).
             let paper = FitOptions {
                 global_only,
@@ -235,41 +232,6 @@ fn ems_fits(c: &mut Criterion) {
         }
     }
     g.finish();
-}
-
-/// A headless app, one `update` = one simulation step of every model (models spread over the
-/// cores by the plugin's parallel systems).
-fn headless_app() -> App {
-    let mut app = App::new();
-    app.add_plugins((
-        MinimalPlugins.set(TaskPoolPlugin {
-            task_pool_options: simulation_task_pools(),
-        }),
-        DeformableSqPlugin::in_schedule(Update),
-    ));
-    app.insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_millis(
-        16,
-    )));
-    app
-}
-
-/// Eleven 963-node models in one headless app with range springs on 500 points each.
-fn app_step(c: &mut Criterion) {
-    let mut app = headless_app();
-    for i in 0..11 {
-        let centre = DVec3::new(i as f64 * 3.0, 0.0, 0.0);
-        let pts = superquadric_cloud(&target(), centre, DQuat::IDENTITY, 500, 0.01, i);
-        app.world_mut().spawn((
-            GlobalShape::default(),
-            RigidState {
-                translation: centre,
-                rotation: DQuat::IDENTITY,
-            },
-            RangeData::new(pts),
-        ));
-    }
-    app.update();
-    c.bench_function("app_step/11_models_963_nodes", |b| b.iter(|| app.update()));
 }
 
 /// The doll experiment's image potential and its 11 parts placed from their four points each, as
@@ -297,32 +259,76 @@ fn doll_parts() -> (
     (e, potential, poses)
 }
 
-/// The sandbox's load as the speed issue states it: the doll experiment's 11 parts (963 nodes
-/// each) on the horse image with the experiment's image forces, one simulation step each.
-fn app_step_image(c: &mut Criterion) {
-    let (e, potential, poses) = doll_parts();
-    let mut app = headless_app();
-    let settings = ModelSettings {
-        planar: true,
-        fix_epsilon: true,
-        ..default()
-    };
-    for (translation, rotation, shape) in poses {
-        app.world_mut().spawn((
-            GlobalShape::from(shape),
-            RigidState {
-                translation,
-                rotation,
-            },
-            FemMesh::new(e.options.k),
-            settings,
-            ImageData::new(potential.clone()).with_options(&e.options),
+/// The benchmarks of whole app steps, through the plugin (feature `bevy`).
+#[cfg(feature = "bevy")]
+mod app {
+    use super::*;
+    use bevy::prelude::*;
+    use bevy::time::TimeUpdateStrategy;
+    use bevy_deformable_sq::prelude::*;
+
+    /// A headless app, one `update` = one simulation step of every model (models spread over the
+    /// cores by the plugin's parallel systems).
+    fn headless_app() -> App {
+        let mut app = App::new();
+        app.add_plugins((
+            MinimalPlugins.set(TaskPoolPlugin {
+                task_pool_options: simulation_task_pools(),
+            }),
+            DeformableSqPlugin::in_schedule(Update),
         ));
+        app.insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_millis(
+            16,
+        )));
+        app
     }
-    app.update();
-    c.bench_function("app_step/11_models_963_nodes_image", |b| {
-        b.iter(|| app.update())
-    });
+
+    /// Eleven 963-node models in one headless app with range springs on 500 points each.
+    pub fn app_step(c: &mut Criterion) {
+        let mut app = headless_app();
+        for i in 0..11 {
+            let centre = DVec3::new(i as f64 * 3.0, 0.0, 0.0);
+            let pts = superquadric_cloud(&target(), centre, DQuat::IDENTITY, 500, 0.01, i);
+            app.world_mut().spawn((
+                GlobalShape::default(),
+                RigidState {
+                    translation: centre,
+                    rotation: DQuat::IDENTITY,
+                },
+                RangeData::new(pts),
+            ));
+        }
+        app.update();
+        c.bench_function("app_step/11_models_963_nodes", |b| b.iter(|| app.update()));
+    }
+
+    /// The sandbox's load as the speed issue states it: the doll experiment's 11 parts (963 nodes
+    /// each) on the horse image with the experiment's image forces, one simulation step each.
+    pub fn app_step_image(c: &mut Criterion) {
+        let (e, potential, poses) = doll_parts();
+        let mut app = headless_app();
+        let settings = ModelSettings {
+            planar: true,
+            fix_epsilon: true,
+            ..default()
+        };
+        for (translation, rotation, shape) in poses {
+            app.world_mut().spawn((
+                GlobalShape::from(shape),
+                RigidState {
+                    translation,
+                    rotation,
+                },
+                FemMesh::new(e.options.k),
+                settings,
+                ImageData::new(potential.clone()).with_options(&e.options),
+            ));
+        }
+        app.update();
+        c.bench_function("app_step/11_models_963_nodes_image", |b| {
+            b.iter(|| app.update())
+        });
+    }
 }
 
 /// The image forces of the sandbox's load on one core: the doll experiment's forces (edge pull on
@@ -452,11 +458,14 @@ criterion_group!(
     beyond_the_paper_step,
     reassignment,
     migration,
-    app_step,
-    app_step_image,
     image_forces,
     memory_per_node,
     residuals_of_a_fit,
     ems_fits
 );
+#[cfg(feature = "bevy")]
+criterion_group!(app_benches, app::app_step, app::app_step_image);
+#[cfg(feature = "bevy")]
+criterion_main!(benches, app_benches);
+#[cfg(not(feature = "bevy"))]
 criterion_main!(benches);

@@ -10,7 +10,7 @@
 //! surface, as fractions of the cloud's bounding-box diagonal (`model::fit::residuals`). Pure
 //! superquadrics (EMS's and our global-only fits) are tessellated at k = 151 (22 803 nodes) to
 //! measure them; our fit with local DOFs is measured on its own 963-node surface. "robust" is
-//! `--robust` of the fit example: outlier-robust weights (0.2), point-to-plane springs, the
+//! `--robust` of `dsq fit`: outlier-robust weights (0.2), point-to-plane springs, the
 //! refining stage and the cross-section switch. Semi-axes are listed largest first. Prints a
 //! Markdown table.
 

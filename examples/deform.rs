@@ -11,10 +11,10 @@
 //! Columns: steps, wall time, mean and p95 distance of the points to the fitted surface over the
 //! bounding-box diagonal, and the recovered taper (t_x, t_y) and bend (b_x, b_y). `--robust` runs
 //! every fit with `FitOptions::robust()`.
-use bevy::math::{DQuat, DVec3};
 use bevy_deformable_sq::io::load_points;
 use bevy_deformable_sq::model::fit::{FitOptions, fit};
 use bevy_deformable_sq::synthetic::Banana;
+use glam::{DQuat, DVec3};
 use std::path::Path;
 
 /// The cow's tail: the mesh vertices in its box.

@@ -7,7 +7,7 @@
 //! ```
 //!
 //! For each cloud, a global-only fit with the paper's springs and one with `FitOptions::robust`
-//! (the fit example's `--robust`) are scored by `synthetic::ParameterErrors`: mean relative error
+//! (`dsq fit`'s `--robust`) are scored by `synthetic::ParameterErrors`: mean relative error
 //! of the semi-axes, mean error of ε1 and ε2, translation error over the largest semi-axis and
 //! the rotation error in degrees (all after matching the axes). Prints a Markdown table and the
 //! medians. `--export DIR` also writes each cloud as `DIR/cloud_N.ply` (ASCII) and its truth as
@@ -41,7 +41,7 @@ fn cell(e: &ParameterErrors) -> String {
     )
 }
 
-fn write_ply(path: &PathBuf, points: &[bevy::math::DVec3]) -> std::io::Result<()> {
+fn write_ply(path: &PathBuf, points: &[glam::DVec3]) -> std::io::Result<()> {
     let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
     writeln!(f, "ply\nformat ascii 1.0\nelement vertex {}", points.len())?;
     writeln!(

@@ -15,12 +15,12 @@
 //! side of their object: half of them, with noise, fit to a noticeably different superquadric, so
 //! the descriptor of a one-view fit is only as determined as the view.)
 
-use bevy::math::{DQuat, DVec3};
 use bevy_deformable_sq::io::load_points;
 use bevy_deformable_sq::model::descriptor::{ShapeDescriptor, nearest_part};
 use bevy_deformable_sq::model::fit::{FitOptions, fit};
 use bevy_deformable_sq::scene::{PartRun, SceneDef, run_scene};
 use bevy_deformable_sq::synthetic;
+use glam::{DQuat, DVec3};
 use std::path::Path;
 use std::process::ExitCode;
 

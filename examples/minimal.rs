@@ -1,11 +1,11 @@
 //! The smallest app: one deformable superquadric fitting a point cloud, live.
 //! `cargo run --release --example minimal [-- --screenshot FILE]`
-use bevy::math::{DQuat, DVec3};
 use bevy::prelude::*;
 use bevy_deformable_sq::model::init::initial_pose;
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
+use glam::{DQuat, DVec3};
 
 fn main() {
     let mut app = App::new();

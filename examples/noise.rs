@@ -9,10 +9,10 @@
 //! (global-only) fit, the error with local DOFs for each w1 (w0 = w1 / 100), and the error with the
 //! stiffness `model::noise::stiffness_for_noise` picks from the estimate. Error: the mean distance
 //! of 4000 clean surface points to the fitted surface, over the RMS radius, in units of 10⁻³.
-use bevy::math::DVec3;
 use bevy_deformable_sq::model::fit::{FitOptions, Normalization, fit, point_distances};
 use bevy_deformable_sq::model::noise::{estimate_noise, stiffness_for_noise};
 use bevy_deformable_sq::synthetic::{Rng, ridged_egg};
+use glam::DVec3;
 
 /// The membrane stiffnesses swept.
 const W1: [f64; 7] = [0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0];

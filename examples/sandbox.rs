@@ -15,7 +15,6 @@
 use bevy::diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin};
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::input::mouse::{AccumulatedMouseMotion, AccumulatedMouseScroll};
-use bevy::math::DVec3;
 use bevy::pbr::wireframe::{Wireframe, WireframePlugin};
 use bevy::picking::mesh_picking::MeshPickingPlugin;
 use bevy::prelude::*;
@@ -31,6 +30,7 @@ use bevy_deformable_sq::plugin::{FitDriver, Scratch};
 use bevy_deformable_sq::prelude::*;
 use bevy_egui::input::EguiWantsInput;
 use bevy_egui::{EguiContexts, EguiPlugin, EguiPrimaryContextPass, egui};
+use glam::DVec3;
 use std::collections::VecDeque;
 
 /// The schedule one simulation step runs in; the sandbox runs it `steps_per_frame` times a frame.

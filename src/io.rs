@@ -11,7 +11,7 @@ use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
 use crate::model::fit::{FitReport, Residuals};
 use crate::model::superquadric::SuperquadricParams;
-use bevy::math::DVec3;
+use glam::DVec3;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
@@ -241,7 +241,7 @@ pub fn load_luminance(path: &Path) -> Result<Luminance, IoError> {
 pub fn write_overlay_png(
     path: &Path,
     potential: &crate::model::forces::image::ImagePotential,
-    outlines: &[Vec<[bevy::math::DVec2; 2]>],
+    outlines: &[Vec<[glam::DVec2; 2]>],
 ) -> Result<(), IoError> {
     const COLOURS: [[u8; 3]; 6] = [
         [255, 60, 40],

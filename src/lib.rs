@@ -8,25 +8,54 @@
 //! data act through first-order Lagrangian equations of motion, C q̇ + K q = f_q, integrated by
 //! explicit Euler until the model comes to rest fitted to the data.
 //!
+//! ## Getting started
+//!
+//! Add `DeformableSqPlugin` to an app and spawn `(GlobalShape { .. }, RigidState { .. })` with
+//! `RangeData` (points), `ImageData` (an image) or `SpringForces` (springs to world anchors); the
+//! other components are required components with defaults. `use bevy_deformable_sq::prelude::*`
+//! brings in what an app needs. Without Bevy, [`model::fit::fit`] fits a point cloud in one call,
+//! and the `dsq` binary does the same from the command line.
+//!
+//! ## Features
+//!
+//! | feature | default | what it adds |
+//! |---|---|---|
+//! | `bevy` | yes | `plugin` and `render`: the plugin, its components and systems, the meshes |
+//! | `serialize` | yes | serde derives on the components |
+//! | `debug_render` | yes | `debug_render::DeformableSqDebugPlugin`: gizmos for data and springs |
+//! | `picking`, `egui` | no | Bevy picking and bevy_egui |
+//! | `hot_reload` | no | scene files reload when they change on disk |
+//! | `examples` | no | a window, a font, picking and egui, for the windowed examples |
+//!
+//! With `--no-default-features` the crate is the pure core, on glam (the version Bevy uses):
+//!
 //! * [`model`] — the paper's mathematics, pure and tested (no ECS types).
-//! * [`io`] — reading point clouds (OBJ, PLY) and writing meshes and parameters.
-//! * [`plugin`] — [`DeformableSqPlugin`]: models as components, simulated by one chained system set.
-//! * [`render`] — each model drawn as a dynamic mesh; `debug_render` (feature) draws data and springs.
+//! * [`io`] — reading point clouds (OBJ, PLY) and images, writing meshes and parameters.
 //! * [`scene`] — scene files (RON): parts, their data and settings; loaded, run and saved.
 //! * [`synthetic`] — deterministic test shapes: the paper's egg and mug, sampled superquadrics.
+//!
+//! ## The schedule
+//!
+//! The plugin runs in `FixedUpdate` by default, one step per run, in the chained set
+//! `DeformableSqSystems`: `Prepare → Reassign → GatherForces → Integrate → Converge →
+//! WriteBack` (see the `plugin` module).
 
 #[cfg(feature = "debug_render")]
 pub mod debug_render;
 pub mod io;
 pub mod model;
+#[cfg(feature = "bevy")]
 pub mod plugin;
+#[cfg(feature = "bevy")]
 pub mod render;
 pub mod scene;
 pub mod synthetic;
 
+#[cfg(feature = "bevy")]
 pub use plugin::{DeformableSqPlugin, DeformableSqSystems};
 
 /// The types a Bevy app needs: `use bevy_deformable_sq::prelude::*;`.
+#[cfg(feature = "bevy")]
 pub mod prelude {
     #[cfg(feature = "debug_render")]
     pub use crate::debug_render::{DebugRenderConfig, DeformableSqDebugPlugin};

@@ -6,7 +6,7 @@
 //! scene file. This module is pure: parsing and checking ([`SceneDef::parse`]), loading the data
 //! ([`SceneData::resolve`]), running every part to rest ([`run_part`]) and writing the scene back
 //! with the parts' current state ([`SceneDef::set_state`], [`SceneDef::to_ron`]). The plugin loads
-//! scenes as Bevy assets (`crate::plugin::scene`) and the `fit` example runs them headless.
+//! scenes as Bevy assets (`plugin::scene`, feature `bevy`) and `dsq fit --scene` runs them headless.
 //!
 //! Every error ([`SceneError`]) names the file and the line and column (syntax, unknown fields,
 //! wrong types) or the field (`parts[1].w0`, out-of-range values, missing data).
@@ -47,7 +47,7 @@ use crate::model::joint::JointEnd;
 use crate::model::noise::{NOISE_NEIGHBOURS, NoiseEstimate, estimate_noise, stiffness_for_noise};
 use crate::model::parts::{PARTITION_ROUNDS, partition};
 use crate::model::superquadric::{LEAST_EPSILON, MAX_EPSILON, SuperquadricParams};
-use bevy::math::{DQuat, DVec2, DVec3};
+use glam::{DQuat, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::fmt;
@@ -80,7 +80,7 @@ pub struct SceneDef {
 
 /// A joint between two parts' surfaces: `(parts: (0, 1), ends: ((u: 0.0, v: 0.0), (u: 0.0,
 /// v: 3.14159)))`, with an optional stabilising constant (`stiffness`, default
-/// [`crate::plugin::PartJoint::STIFFNESS`]).
+/// [`crate::model::joint::Joint::DEFAULT_STIFFNESS`]).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct JointDef {
@@ -94,7 +94,7 @@ pub struct JointDef {
 }
 
 fn default_joint_stiffness() -> f64 {
-    crate::plugin::PartJoint::STIFFNESS
+    crate::model::joint::Joint::DEFAULT_STIFFNESS
 }
 
 /// Where a scene's data come from. Paths are relative to the scene file.
@@ -344,7 +344,7 @@ pub struct Freedoms {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub planar: Option<bool>,
     /// Hold the whole superquadric shape: the part moves as a rigid body (see
-    /// [`crate::plugin::ModelSettings::fix_shape`]).
+    /// `ModelSettings::fix_shape` of the plugin).
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub fix_shape: bool,
     /// Let the tapering coordinates move ([`crate::model::deform`]; beyond the paper).

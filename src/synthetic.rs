@@ -12,7 +12,7 @@
 use crate::model::fit::{FitOptions, Initialization};
 use crate::model::init::{InitialPose, moments};
 use crate::model::superquadric::{SuperquadricParams, shape_at};
-use bevy::math::{DQuat, DVec3};
+use glam::{DQuat, DVec3};
 use std::f64::consts::{FRAC_PI_2, PI};
 
 /// A small deterministic generator (SplitMix64), so data and tests are the same on every machine.
@@ -428,13 +428,13 @@ impl ParameterErrors {
             .map(|i| (relabelled.epsilon[i] - t.epsilon[i]).abs())
             .sum::<f64>()
             / 2.0;
-        let truth_m = bevy::math::DMat3::from_quat(truth.rotation);
-        let fit_m = bevy::math::DMat3::from_quat(fit.rotation);
+        let truth_m = glam::DMat3::from_quat(truth.rotation);
+        let fit_m = glam::DMat3::from_quat(fit.rotation);
         let order = RELABELLINGS[k];
         let mut rotation_deg = f64::INFINITY;
         for signs in 0..8 {
             let s = |j: usize| if signs & (1 << j) != 0 { -1.0 } else { 1.0 };
-            let frame = bevy::math::DMat3::from_cols(
+            let frame = glam::DMat3::from_cols(
                 fit_m.col(order[0]) * s(0),
                 fit_m.col(order[1]) * s(1),
                 fit_m.col(order[2]) * s(2),

@@ -1,9 +1,9 @@
 //! Global tapering and bending (`model::deform`, beyond the paper) in whole fits: on a curved,
 //! tapered object they capture what the plain superquadric cannot.
 
-use bevy::math::{DMat3, DQuat, DVec3};
 use bevy_deformable_sq::model::fit::{FitOptions, FitReport, fit};
 use bevy_deformable_sq::synthetic::Banana;
+use glam::{DMat3, DQuat, DVec3};
 
 fn banana_fit(points: &[DVec3], taper: bool, bend: bool) -> FitReport {
     let mut o = FitOptions {

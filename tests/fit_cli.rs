@@ -1,13 +1,13 @@
-//! The command-line fitter (`examples/fit.rs`), run as a user runs it: every bad input gives a
+//! The command-line fitter (`dsq fit`), run as a user runs it: every bad input gives a
 //! one-line error naming the file and exit code 2; a good input gives a JSON summary line and the
 //! requested mesh and parameter files.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-/// The example binary that `cargo test` builds next to the test binaries.
-fn fit_binary() -> PathBuf {
-    example_binary("fit")
+/// The `dsq` binary that cargo builds for the integration tests.
+fn dsq() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_dsq"))
 }
 
 /// An example binary that `cargo test` builds next to the test binaries.
@@ -45,11 +45,9 @@ fn scratch() -> PathBuf {
     d
 }
 
+/// `dsq fit ARGS`.
 fn run(args: &[&str]) -> Output {
-    Command::new(fit_binary())
-        .args(args)
-        .output()
-        .expect("run fit")
+    dsq().arg("fit").args(args).output().expect("run dsq fit")
 }
 
 /// The JSON lines a successful run printed (fails the test, with stderr, when the run failed).
@@ -502,6 +500,36 @@ fn the_ground_truth_example_scores_ours_and_ems_with_finite_errors() {
     }
 }
 
+#[test]
+fn help_exits_0_and_a_bare_dsq_prints_its_usage_with_exit_2() {
+    for args in [
+        &["--help"][..],
+        &["fit", "--help"],
+        &["help", "fit"],
+        &["--version"],
+    ] {
+        let out = dsq().args(args).output().expect("run dsq");
+        assert_eq!(out.status.code(), Some(0), "{args:?}");
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(text.contains("dsq"), "{args:?}: {text}");
+    }
+    let fit_help = String::from_utf8_lossy(&dsq().args(["fit", "--help"]).output().unwrap().stdout)
+        .into_owned();
+    for option in ["--paper", "--global-only", "--part", "--out-scene", "--w1"] {
+        assert!(fit_help.contains(option), "{option} missing: {fit_help}");
+    }
+    let bare = dsq().output().expect("run dsq");
+    assert_eq!(bare.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bare.stderr).contains("Usage: dsq"));
+}
+
+#[cfg(not(feature = "bevy"))]
+#[test]
+fn app_needs_the_bevy_feature_and_says_so() {
+    assert_bad_input(&["--paper", "egg", "--app"], "--app", "`bevy` feature");
+}
+
+#[cfg(feature = "bevy")]
 #[test]
 fn the_robust_fit_through_the_app_is_the_core_fit() {
     // The cross-section switch and the refining stage (kept here) run through the plugin too,

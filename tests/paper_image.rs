@@ -6,7 +6,6 @@
 //! projected silhouettes with the thresholded foreground. Both must clearly improve from the
 //! crude initial placement to the fitted state.
 
-use bevy::math::{DVec2, DVec3};
 use bevy::prelude::*;
 use bevy::time::TimeUpdateStrategy;
 use bevy_deformable_sq::io::load_luminance;
@@ -19,6 +18,7 @@ use bevy_deformable_sq::model::image_fit::{
 };
 use bevy_deformable_sq::plugin::ImageData;
 use bevy_deformable_sq::prelude::*;
+use glam::{DVec2, DVec3};
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;

@@ -1,9 +1,9 @@
 //! The paper's range experiments (section VI-B) on data rebuilt from their description
 //! (`bevy_deformable_sq::synthetic`), with the paper's node counts, stiffnesses and initial states.
 
-use bevy::math::DVec3;
 use bevy_deformable_sq::model::fit::{FitOptions, FitReport, fit};
 use bevy_deformable_sq::synthetic;
+use glam::DVec3;
 
 fn run(points: &[DVec3], opts: FitOptions) -> FitReport {
     fit(points, &opts, |_| {}).expect("fit runs")

@@ -1,7 +1,6 @@
 //! DeformableSqPlugin in headless apps (`MinimalPlugins`, time driven by
 //! `TimeUpdateStrategy::ManualDuration`).
 
-use bevy::math::{DQuat, DVec3};
 use bevy::prelude::*;
 use bevy::time::TimeUpdateStrategy;
 use bevy_deformable_sq::model::dynamics::{ModelState, NodalForces, Workspace, step};
@@ -11,6 +10,7 @@ use bevy_deformable_sq::model::joint::JointEnd;
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
+use glam::{DQuat, DVec3};
 use std::hash::{Hash, Hasher};
 use std::time::Duration;
 

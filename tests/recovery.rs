@@ -1,7 +1,6 @@
 //! Global-only recovery of known superquadrics, invariance of a fit under rigid motions and
 //! scaling, and the energy of the fitting dynamics.
 
-use bevy::math::{DMat3, DQuat, DVec3, EulerRot};
 use bevy_deformable_sq::model::dynamics::{
     DynamicsParams, ModelState, NodalForces, Workspace, step,
 };
@@ -11,6 +10,7 @@ use bevy_deformable_sq::model::forces::range::{InfluenceMode, RangeForces};
 use bevy_deformable_sq::model::init::initial_pose;
 use bevy_deformable_sq::model::superquadric::{MIN_EPSILON, SuperquadricParams};
 use bevy_deformable_sq::synthetic::superquadric_cloud;
+use glam::{DMat3, DQuat, DVec3, EulerRot};
 
 fn truth() -> (SuperquadricParams, DVec3, DQuat) {
     (

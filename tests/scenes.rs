@@ -4,7 +4,6 @@
 
 use bevy::asset::AssetPlugin;
 use bevy::ecs::schedule::ScheduleLabel;
-use bevy::math::{DQuat, DVec2, DVec3};
 use bevy::prelude::*;
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
@@ -17,6 +16,7 @@ use bevy_deformable_sq::plugin::scene::{SceneImage, save_scene};
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::scene::{PartRun, SceneDef, SceneError, run_scene};
 use bevy_deformable_sq::synthetic;
+use glam::{DQuat, DVec2, DVec3};
 use std::path::{Path, PathBuf};
 
 const SHIPPED: [(&str, usize); 9] = [
@@ -96,7 +96,7 @@ fn egg_and_mug_scenes_run_the_papers_experiments_to_rest() {
         let part = &def.parts[0];
         let start = data.initial_state(&def, 0).unwrap();
         assert_eq!(data.range_points(&def, 0).unwrap(), points, "{name}");
-        // The same options bit for bit, hence the same fit as `fit --paper egg|mug`.
+        // The same options bit for bit, hence the same fit as `dsq fit --paper egg|mug`.
         assert_eq!(part.fit_options(&start), options, "{name}");
         let run = run_scene(&def, &data, None).remove(0).unwrap();
         let PartRun::Range(report) = run else {

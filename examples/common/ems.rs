@@ -1,9 +1,9 @@
 //! EMS's fits as committed in `assets/data/ems/*.jsonl` (numbers from running EMS; see
 //! `assets/data/ATTRIBUTION.md`), shared by the examples that compare with it.
 
-use bevy::math::{DMat3, DQuat, DVec3};
 use bevy_deformable_sq::model::init::InitialPose;
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
+use glam::{DMat3, DQuat, DVec3};
 use std::path::Path;
 
 /// One line of an EMS results file.

@@ -24,7 +24,7 @@
 //! [`GlobalDeformation::jacobian`] gives ∂T/∂(x, y, z, A, t_x, t_y, b_x, b_y) by forward-mode
 //! differentiation of the formulas above; the tests check it against central differences.
 
-use bevy::math::{DMat3, DVec3};
+use glam::{DMat3, DVec3};
 
 /// Number of deformation coordinates q_T = (t_x, t_y, b_x, b_y).
 pub const NUM_DEFORM: usize = 4;

@@ -129,7 +129,7 @@ pub fn nearest_part(library: &[ShapeDescriptor], query: &ShapeDescriptor) -> Opt
 mod tests {
     use super::*;
     use crate::model::superquadric::inside_outside;
-    use bevy::math::DVec3;
+    use glam::DVec3;
 
     fn q(a1: f64, a2: f64, a3: f64, e1: f64, e2: f64) -> SuperquadricParams {
         SuperquadricParams {

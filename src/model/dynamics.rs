@@ -48,7 +48,7 @@ use super::frame::{g_matrix, quat_from_paper, quat_to_paper, rotation_matrix};
 use super::linalg::cholesky_solve;
 use super::simd::with_avx2;
 use super::superquadric::{NUM_SHAPE, SignedPowers, SuperquadricParams, Trig, shape_from_powers};
-use bevy::math::{DMat3, DQuat, DVec3};
+use glam::{DMat3, DQuat, DVec3};
 
 /// Number of global degrees of freedom: q_c (3) + q_θ (4) + q_s (6) + q_T (4, tapering and
 /// bending: [`super::deform`], frozen unless [`FreeDofs::taper`] / [`FreeDofs::bend`]).
@@ -612,7 +612,7 @@ impl Workspace {
             |_, p| points.push(p),
         );
         // The world positions in a pass of their own: a loop that pushed both took 6 % longer
-        // at 5043 nodes (BENCHMARKS.md, log entry 27).
+        // at 5043 nodes.
         self.world.extend(self.points.iter().map(|p| c + r * *p));
     }
 

@@ -18,7 +18,7 @@
 
 use super::simd::with_avx2;
 use super::superquadric::{SignedPowers, SuperquadricParams, Trig, spow};
-use bevy::math::DVec3;
+use glam::DVec3;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 /// Element matrices of one element type: the gradient part ∫∇N_i·∇N_j du and the value part
@@ -347,8 +347,7 @@ fn apply_elements<const N: usize>(
 /// The edges still waiting for their second triangle are kept in a list per lower node index
 /// (each a few entries long; a pole's up to k). It replaced a `HashMap` keyed by the node pair,
 /// whose SipHash hashing and removals took a third of the time of measuring a fit's residuals on
-/// the 22 803-node tessellation ([`crate::model::fit::fit_residuals`]; BENCHMARKS.md, log entry
-/// 20); the edges are the same, in the same order.
+/// the 22 803-node tessellation ([`crate::model::fit::fit_residuals`]); the edges are the same, in the same order.
 fn edge_faces(tris: &[[u32; 3]]) -> Vec<[u32; 4]> {
     const END: u32 = u32::MAX;
     let nodes = tris.iter().flatten().max().map_or(0, |&n| n as usize + 1);

@@ -30,7 +30,7 @@ use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces, Robust}
 use super::init::{InitialPose, initial_pose, moments};
 use super::superquadric::{LEAST_EPSILON, MIN_EPSILON, SuperquadricParams};
 use crate::model::forces::range::kd_tree;
-use bevy::math::DVec3;
+use glam::DVec3;
 use kiddo::SquaredEuclidean;
 use std::f64::consts::SQRT_2;
 use std::num::NonZero;
@@ -80,7 +80,7 @@ pub fn refine_check(distance: f64, least: f64) -> Option<f64> {
 /// [`REFINE_MAX_GROWTH`] times `start`, its length at the start of the stage. One number, so
 /// [`fit`] and the plugin's fit ask after every step of the stage that did not end it: a model
 /// that runs off in length goes on running off, and was given up only at the next check of
-/// [`REFINE_CHECK_EVERY`] (BENCHMARKS.md, log entry 20: EMS's `partial_pointCloud_example_1`
+/// [`REFINE_CHECK_EVERY`] (on EMS's `partial_pointCloud_example_1`
 /// had one similarity candidate 2.2 times as long 65 steps into its refinement and 62 times at
 /// the check 215 steps in).
 pub fn refine_overgrown(longest: f64, start: f64) -> bool {
@@ -106,7 +106,7 @@ pub const REFINE_MIN_PROGRESS: f64 = 1e-3;
 /// --example ground_truth`) the candidates that won did so from ratios of 0.39 to 1.89, and
 /// those that lost reached 4.5; at 2.5 the fits and the ground-truth table are what refining
 /// every candidate gives, and EMS's `partial_pointCloud_example_1`, `_2` and `_3` skip
-/// refinements that took 25 %, 31 % and 40 % of their steps (BENCHMARKS.md, log entry 16).
+/// refinements that took 25 %, 31 % and 40 % of their steps.
 pub const SIMILARITY_REFINE_MARGIN: f64 = 2.5;
 
 /// Whether a similarity candidate whose global stage ended `candidate` from the points is
@@ -242,7 +242,7 @@ impl FitOptions {
     /// These options with everything that makes a fit robust to outliers and accurate on partial
     /// clouds (all beyond the paper): outlier-robust weights with a prior outlier fraction of 0.2
     /// (EMS's), point-to-plane springs in the global stage, the refining stage, the cross-section
-    /// switch and the similarity switch. The fit example's `--robust`.
+    /// switch and the similarity switch. `dsq fit`'s `--robust`.
     pub fn robust(self) -> Self {
         Self {
             outlier_ratio: ROBUST_OUTLIER_RATIO,
@@ -356,10 +356,8 @@ pub enum Stage {
     /// migrating to its closest point on the surface (the paper's Fig. 3) and point-to-plane
     /// springs: the superquadric fitted to the points themselves instead of to the nodes they
     /// chose (beyond the paper's experiments; [`FitOptions::refine`]). [`fit`] and
-    /// `plugin::headless::fit_headless` undo it when it does not pay; a [`FitDriver`] alone runs
-    /// it to rest or to its budget.
-    ///
-    /// [`FitDriver`]: crate::plugin::FitDriver
+    /// `plugin::headless::fit_headless` undo it when it does not pay; the plugin's `FitDriver` alone
+    /// runs it to rest or to its budget.
     Refine,
     /// Global and local DOFs together.
     Joint,
@@ -803,16 +801,16 @@ pub fn cross_section_dual(pose: &InitialPose) -> Option<InitialPose> {
 /// With `swap`, ε1 and ε2 trade places (EMS's axis-mismatch candidate: exact for ε1 = ε2 = 1,
 /// and the nearest superquadric of the new frame when both exponents are alike).
 fn turned_axes(pose: &InitialPose, turns: usize, swap: bool) -> InitialPose {
-    let m = bevy::math::DMat3::from_quat(pose.rotation);
+    let m = glam::DMat3::from_quat(pose.rotation);
     let semi = pose.shape.semi_axes().to_array();
     let (cx, cy, cz) = (turns % 3, (turns + 1) % 3, (turns + 2) % 3);
-    let frame = bevy::math::DMat3::from_cols(m.col(cx), m.col(cy), m.col(cz));
+    let frame = glam::DMat3::from_cols(m.col(cx), m.col(cy), m.col(cz));
     let a = semi[cx].max(semi[cy]).max(semi[cz]).max(f64::MIN_POSITIVE);
     let q = pose.shape;
     let (e1, e2) = if swap { (q.e2, q.e1) } else { (q.e1, q.e2) };
     InitialPose {
         translation: pose.translation,
-        rotation: bevy::math::DQuat::from_mat3(&frame).normalize(),
+        rotation: glam::DQuat::from_mat3(&frame).normalize(),
         shape: SuperquadricParams {
             a,
             a1: semi[cx] / a,
@@ -860,9 +858,8 @@ pub fn similarity_candidates(pose: &InitialPose) -> Vec<InitialPose> {
 fn dual_about_z(pose: &InitialPose, scale: f64) -> InitialPose {
     let q = pose.shape;
     let section = 0.5 * (q.a1 + q.a2) * scale;
-    let rotation = (pose.rotation
-        * bevy::math::DQuat::from_rotation_z(std::f64::consts::FRAC_PI_4))
-    .normalize();
+    let rotation =
+        (pose.rotation * glam::DQuat::from_rotation_z(std::f64::consts::FRAC_PI_4)).normalize();
     let shape = SuperquadricParams {
         a1: section,
         a2: section,
@@ -1096,8 +1093,7 @@ pub const MAX_FIT_THREADS: usize = 8;
 /// A thread an item rather than one a core: the items are a fit's three axis hypotheses or its
 /// three to five similarity candidates, of about equal length, and on two cores a worker a core
 /// runs three of them as two after one (the second core idle for the third), where the operating
-/// system's time slicing runs them side by side and finishes in about one and a half
-/// (BENCHMARKS.md, log entry 19).
+/// system's time slicing runs them side by side and finishes in about one and a half.
 pub(crate) fn run_parallel<I: Sync, R: Send>(
     items: &[I],
     job: impl Fn(&I, &mut dyn FnMut(&FitProgress)) -> R + Sync,
@@ -1491,7 +1487,7 @@ impl Residuals {
 mod tests {
     use super::*;
     use crate::model::superquadric::{SuperquadricParams, inside_outside, shape_at};
-    use bevy::math::DQuat;
+    use glam::DQuat;
 
     #[test]
     fn a_refinement_is_given_up_when_it_runs_off_or_grows_too_long() {

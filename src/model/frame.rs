@@ -4,7 +4,7 @@
 //! The paper's quaternion is [s, v] with scalar s first; glam's [`DQuat`] stores (x, y, z, w) with
 //! the scalar last. [`quat_to_paper`] and [`quat_from_paper`] convert, so q_θ = (s, v1, v2, v3).
 
-use bevy::math::{DMat3, DQuat, DVec3, DVec4};
+use glam::{DMat3, DQuat, DVec3, DVec4};
 
 /// q_θ in the paper's order (s, v1, v2, v3).
 pub fn quat_to_paper(q: DQuat) -> [f64; 4] {

@@ -32,7 +32,7 @@ use super::forces::image::{
     for_each_outline_edge,
 };
 use super::superquadric::SuperquadricParams;
-use bevy::math::{DMat3, DQuat, DVec2, DVec3};
+use glam::{DMat3, DQuat, DVec2, DVec3};
 use std::sync::Arc;
 
 /// A part's placement in the image plane: centre, major semi-axis (a vector) and minor semi-axis.

@@ -43,7 +43,7 @@ use super::fem::{GridPowers, Tessellation};
 use super::frame::rotation_matrix;
 use super::linalg::cholesky_solve;
 use super::superquadric::{MAX_EPSILON, MIN_ASPECT, SuperquadricParams, epsilon_floor};
-use bevy::math::{DMat3, DQuat, DVec3};
+use glam::{DMat3, DQuat, DVec3};
 
 /// Number of global velocity coordinates: ċ (3), Ω (3), Ȧ (3), ε̇ (2), q̇_T (4).
 pub const NUM_GLOBAL_VELOCITY: usize = 15;

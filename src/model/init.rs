@@ -11,7 +11,7 @@
 
 use super::linalg::symmetric_eigen3;
 use super::superquadric::SuperquadricParams;
-use bevy::math::{DMat3, DQuat, DVec3};
+use glam::{DMat3, DQuat, DVec3};
 
 /// A rigid pose and global shape: everything but the local displacements.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -167,7 +167,7 @@ mod tests {
     #[test]
     fn frame_is_equivariant_under_rotation() {
         let pts = egg_cloud();
-        let rot = DQuat::from_euler(bevy::math::EulerRot::XYZ, 0.4, -1.1, 2.0);
+        let rot = DQuat::from_euler(glam::EulerRot::XYZ, 0.4, -1.1, 2.0);
         let moved: Vec<DVec3> = pts
             .iter()
             .map(|p| rot * *p + DVec3::new(3.0, -1.0, 7.0))

@@ -18,7 +18,7 @@
 
 use super::dynamics::NodalForces;
 use super::fem::Tessellation;
-use bevy::math::DVec3;
+use glam::DVec3;
 
 /// The multiplier's step η for the first-order dynamics: λ gains η κ g per step.
 pub const MULTIPLIER_RATE: f64 = 0.2;
@@ -73,6 +73,10 @@ pub struct Joint {
 }
 
 impl Joint {
+    /// The default stabilising constant κ: ten times the range springs' β per unit area, so that
+    /// a joint outweighs a part's data while the multiplier builds up.
+    pub const DEFAULT_STIFFNESS: f64 = 40.0;
+
     /// A joint between `a` and `b` with stabilising constant `stiffness` and λ = 0.
     pub fn new(a: JointEnd, b: JointEnd, stiffness: f64) -> Self {
         Self {
@@ -141,7 +145,7 @@ mod tests {
     use crate::model::forces::range::{InfluenceMode, RangeForces};
     use crate::model::superquadric::SuperquadricParams;
     use crate::synthetic::superquadric_cloud;
-    use bevy::math::DQuat;
+    use glam::DQuat;
 
     /// The node positions of a pair of models, and empty forces for each.
     fn positions_and_no_forces(

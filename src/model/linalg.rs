@@ -2,7 +2,7 @@
 //! degrees of freedom, and the eigen-decomposition of a symmetric 3×3 matrix for moment-based
 //! initialisation.
 
-use bevy::math::{DMat3, DVec3};
+use glam::{DMat3, DVec3};
 
 /// Solves A x = b for a symmetric positive-definite `N×N` matrix by Cholesky factorisation.
 /// Returns `None` when A is not numerically positive definite or an input is not finite.
@@ -111,7 +111,7 @@ mod tests {
 
     #[test]
     fn eigen3_diagonalises() {
-        let r = DMat3::from_quat(bevy::math::DQuat::from_axis_angle(
+        let r = DMat3::from_quat(glam::DQuat::from_axis_angle(
             DVec3::new(1.0, 2.0, -0.5).normalize(),
             0.8,
         ));

@@ -22,7 +22,7 @@ use super::fit::Normalization;
 use super::init::{Moments, moments};
 use super::linalg::{cholesky_solve, symmetric_eigen3};
 use crate::model::forces::range::kd_tree;
-use bevy::math::DVec3;
+use glam::DVec3;
 use kiddo::SquaredEuclidean;
 use std::num::NonZeroUsize;
 
@@ -165,7 +165,7 @@ mod tests {
     use super::*;
     use crate::model::superquadric::SuperquadricParams;
     use crate::synthetic::superquadric_cloud;
-    use bevy::math::DQuat;
+    use glam::DQuat;
 
     #[test]
     fn recovers_the_noise_added_to_a_curved_surface_at_any_scale() {

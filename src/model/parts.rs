@@ -15,7 +15,7 @@ use super::fit::{
     FitError, FitOptions, FitReport, Initialization, MIN_POINTS, fit, point_distances, run_parallel,
 };
 use super::init::InitialPose;
-use bevy::math::DVec3;
+use glam::DVec3;
 
 /// k-means clusters of `points`: the cluster of each point. Seeds: the point farthest from the
 /// centroid, then repeatedly the point farthest from every seed so far; then `iterations` Lloyd
@@ -73,7 +73,7 @@ pub fn kmeans(points: &[DVec3], k: usize, iterations: u32) -> Vec<usize> {
     label
 }
 
-/// Rounds of fit-then-reassign that [`fit_parts`]'s callers use by default (the fit example's
+/// Rounds of fit-then-reassign that [`fit_parts`]'s callers use by default (`dsq fit`'s
 /// `--parts`, scenes' shared sources): on the scans in `assets/` the partition has settled, or
 /// moves a handful of points back and forth, by then.
 pub const PARTITION_ROUNDS: u32 = 8;
@@ -273,7 +273,7 @@ mod tests {
     use super::*;
     use crate::model::superquadric::SuperquadricParams;
     use crate::synthetic::superquadric_cloud;
-    use bevy::math::DQuat;
+    use glam::DQuat;
 
     /// Points on two superquadrics (shape, centre, count), with noise; and how many are on the first.
     fn two_clouds(

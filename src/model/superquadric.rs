@@ -12,7 +12,7 @@
 //! because ∂/∂ε [sgn(c)|c|^ε] = sgn(c)|c|^ε ln|c|, which tends to 0 as |c| → 0 for ε > 0.
 //! `tests` checks every column against central differences.
 
-use bevy::math::DVec3;
+use glam::DVec3;
 
 /// Lower bound kept on each aspect ratio a_i (eq. 4 allows 0 ≤ a_i ≤ 1; 0 collapses the shape).
 pub const MIN_ASPECT: f64 = 1e-3;

@@ -352,9 +352,8 @@ impl PartJoint {
         }
     }
 
-    /// The default stabilising constant κ: ten times the range springs' β per unit area, so that
-    /// a joint outweighs a part's data while the multiplier builds up.
-    pub const STIFFNESS: f64 = 40.0;
+    /// The default stabilising constant κ ([`Joint::DEFAULT_STIFFNESS`]).
+    pub const STIFFNESS: f64 = Joint::DEFAULT_STIFFNESS;
 }
 
 /// Pause, single-step and reset, and what the simulation did.

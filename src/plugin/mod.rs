@@ -43,7 +43,7 @@ pub enum DeformableSqSystems {
 /// so the models of a scene are stepped one after the other while the other core idles, and half
 /// of the cores on eight. The I/O and async-compute pools keep their threads here, which sleep
 /// while no asset loads. The pools are process-wide, made by the first app that builds a
-/// `TaskPoolPlugin`. Measured (BENCHMARKS.md, log entry 31): one frame of the sandbox's load, 11
+/// `TaskPoolPlugin`. Measured (`cargo bench --bench kernels -- app_step`): one frame of the sandbox's load, 11
 /// models with image forces, ×0.64–0.70 on 2 cores.
 ///
 /// ```

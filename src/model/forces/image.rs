@@ -27,7 +27,7 @@
 
 use crate::model::dynamics::NodalForces;
 use crate::model::fem::Tessellation;
-use bevy::math::{DVec2, DVec3};
+use glam::{DVec2, DVec3};
 use std::sync::Arc;
 
 /// Default half-width of the band |x3| < band of nodes that feel the image (the paper's 0.2).
@@ -991,7 +991,7 @@ mod tests {
             let state = ModelState::new(
                 &tess,
                 DVec3::new(0.12, -0.05, 0.02),
-                bevy::math::DQuat::from_rotation_x(0.7) * bevy::math::DQuat::from_rotation_z(0.4),
+                glam::DQuat::from_rotation_x(0.7) * glam::DQuat::from_rotation_z(0.4),
                 shape,
             );
             let mut x = Vec::new();
@@ -1073,7 +1073,7 @@ mod tests {
         let state = ModelState::new(
             &tess,
             DVec3::new(0.03, -0.02, 0.01),
-            bevy::math::DQuat::from_rotation_x(0.3).normalize(),
+            glam::DQuat::from_rotation_x(0.3).normalize(),
             shape,
         );
         let mut x = Vec::new();

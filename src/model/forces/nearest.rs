@@ -17,7 +17,7 @@
 
 use std::cell::OnceCell;
 
-use bevy::math::DVec3;
+use glam::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use crate::model::simd::with_avx2;
@@ -25,7 +25,7 @@ use crate::model::simd::with_avx2;
 /// Cell width in node spacings, the spacing estimated as √(A / n) from the area A of the nodes'
 /// bounding box and their number n (the cells may be wider: [`MAX_CELLS_PER_NODE`]). Chosen by
 /// the `reassignment` benchmarks among 0.5–3.0: wider cells scan more nodes for each query,
-/// narrower ones more rows of cells and more second blocks (BENCHMARKS.md log entry 33).
+/// narrower ones more rows of cells and more second blocks.
 const CELL_SPACINGS: f64 = 0.8;
 
 /// At most this many cells per node: bounds the grid's memory when the nodes' bounding box is

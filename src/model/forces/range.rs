@@ -66,7 +66,7 @@ use crate::model::fem::{ElementPoint, Tessellation};
 use crate::model::forces::nearest::NodeGrid;
 use crate::model::simd::with_avx2;
 use crate::model::superquadric::Trig;
-use bevy::math::DVec3;
+use glam::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -332,7 +332,7 @@ impl PointTree {
 /// decides which queries the tree answers; tested); only the time changes. A fit's data points
 /// never change while its nodes move, so [`RangeForces`] orders its points once and searches in
 /// that order at every reassignment.
-/// Measured (`cargo bench --bench kernels -- reassignment`, BENCHMARKS.md log entry 15): 100 000
+/// Measured (`cargo bench --bench kernels -- reassignment`): 100 000
 /// points against 19 883 nodes searched in 0.74–0.98 of the time they take in random order
 /// (medians of interleaved runs 0.86–0.87), for a one-time ordering that costs about a sixth of
 /// one search; at 1000 points against 963 nodes no difference.
@@ -971,7 +971,7 @@ mod tests {
     use super::*;
     use crate::model::dynamics::ModelState;
     use crate::model::superquadric::SuperquadricParams;
-    use bevy::math::DQuat;
+    use glam::DQuat;
     use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
     fn pseudo_random(n: usize, seed: u64) -> Vec<DVec3> {

@@ -1,0 +1,459 @@
+//! `dsq fit`'s options (clap's derive API) and their resolution into the fitter's settings.
+//!
+//! Where options overlap, the order is fixed, whatever the order on the command line: a
+//! `--paper` experiment's settings first, then `--robust`, then every option given by itself.
+
+use bevy_deformable_sq::model::fit::FitOptions;
+use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
+use bevy_deformable_sq::model::forces::range::InfluenceMode;
+use bevy_deformable_sq::model::image_fit::{ImageFitOptions, doll_experiment, pestle_experiment};
+use bevy_deformable_sq::synthetic;
+use clap::{Args as ClapArgs, ValueEnum};
+use glam::{DVec2, DVec3};
+use std::path::PathBuf;
+
+/// One of the paper's experiments (section VI), on its rebuilt or stand-in data.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Paper {
+    /// The egg range map (2603 nodes, 499 points).
+    Egg,
+    /// The mug range map (1683 nodes, 651 points).
+    Mug,
+    /// The pestle image experiment, on the shipped rocket image.
+    Pestle,
+    /// The doll image experiment (11 parts), on the shipped horse image.
+    Doll,
+}
+
+/// The membrane's w1: a number, or `auto` (chosen from the cloud's noise).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum W1 {
+    /// From the noise the points show.
+    Auto,
+    /// As given.
+    Value(f64),
+}
+
+/// `dsq fit`'s command line.
+#[derive(ClapArgs, Debug)]
+#[command(
+    allow_negative_numbers = true,
+    after_help = "\
+A POINTS file is fitted by default with --outliers 0.2 --plane --w1 auto, and with --robust when \
+--global-only (without --app). --paper-forces starts from the paper's springs and stiffness \
+instead. Progress goes to stderr; stdout gets one JSON line per part and a summary line. Bad input \
+exits with code 2 and a one-line message."
+)]
+pub struct FitArgs {
+    /// The point cloud: an OBJ (its vertices are the points) or PLY file.
+    #[arg(value_name = "POINTS")]
+    pub points: Option<PathBuf>,
+    /// Fit the parts of an image (PNG or JPEG) instead.
+    #[arg(long, value_name = "IMAGE")]
+    pub image: Option<PathBuf>,
+    /// Run every part of a scene file (.dsq.ron) to rest with the scene's settings.
+    #[arg(long, value_name = "FILE")]
+    pub scene: Option<PathBuf>,
+    /// Run one of the paper's experiments with its settings (other options override them).
+    #[arg(long, value_enum, value_name = "EXPERIMENT")]
+    pub paper: Option<Paper>,
+
+    /// Node count k² + 2 (e.g. 963, 1683, 2603, 5043).
+    #[arg(long, value_name = "N", conflicts_with = "k", help_heading = "Model")]
+    pub nodes: Option<usize>,
+    /// Tessellation: k latitude rings × k longitudes + 2 poles (k ≥ 3).
+    #[arg(long, value_name = "K", value_parser = clap::value_parser!(u32).range(3..), help_heading = "Model")]
+    pub k: Option<u32>,
+    /// Membrane stiffness w0 (≥ 0).
+    #[arg(long, value_name = "F", value_parser = non_negative, help_heading = "Model")]
+    pub w0: Option<f64>,
+    /// Membrane stiffness w1 (≥ 0), or `auto` to choose it (and w0) from the cloud's noise.
+    #[arg(long, value_name = "F|auto", value_parser = w1, help_heading = "Model")]
+    pub w1: Option<W1>,
+    /// Data-spring strength β (> 0).
+    #[arg(long, value_name = "F", value_parser = positive, help_heading = "Model")]
+    pub beta: Option<f64>,
+    /// Step cap (per part for scenes and images).
+    #[arg(long, value_name = "N", help_heading = "Model")]
+    pub max_steps: Option<u32>,
+
+    /// Write the fitted mesh (OBJ).
+    #[arg(long, value_name = "FILE.obj", help_heading = "Output")]
+    pub out_mesh: Option<PathBuf>,
+    /// Write the fitted parameters (JSON).
+    #[arg(long, value_name = "FILE.json", help_heading = "Output")]
+    pub out_params: Option<PathBuf>,
+    /// No progress lines on stderr.
+    #[arg(long, help_heading = "Output")]
+    pub quiet: bool,
+
+    /// A pure superquadric: the local DOFs stay frozen.
+    #[arg(long, help_heading = "Point clouds")]
+    pub global_only: bool,
+    /// Start from the paper's forces and stiffness (equal weights, nearest-node springs,
+    /// w0 = 1e-3, w1 = 0.1) instead of the data-driven defaults.
+    #[arg(long, help_heading = "Point clouds")]
+    pub paper_forces: bool,
+    /// Point-to-plane springs in the global stage.
+    #[arg(long, help_heading = "Point clouds")]
+    pub plane: bool,
+    /// Prior fraction of outliers for the robust spring weights, in [0, 1).
+    #[arg(long, value_name = "F", value_parser = fraction, help_heading = "Point clouds")]
+    pub outliers: Option<f64>,
+    /// Refine the superquadric with points of influence that migrate over the surface.
+    #[arg(long, help_heading = "Point clouds")]
+    pub refine: bool,
+    /// Also try the cross-section dual of the chosen hypothesis.
+    #[arg(long, help_heading = "Point clouds")]
+    pub switch: bool,
+    /// Also try the fit's similarity candidates.
+    #[arg(long, help_heading = "Point clouds")]
+    pub similar: bool,
+    /// --outliers 0.2 --plane --refine --switch --similar: the most accurate pure superquadric
+    /// on partial or outlier-ridden clouds.
+    #[arg(long, help_heading = "Point clouds")]
+    pub robust: bool,
+    /// Points of influence migrate over the surface (the paper's Fig. 3).
+    #[arg(long, help_heading = "Point clouds")]
+    pub migrate: bool,
+    /// Reattach the points every N steps (the paper: 200).
+    #[arg(long, value_name = "N", help_heading = "Point clouds")]
+    pub reassign: Option<u32>,
+    /// Fit N parts (a cloud split among them, or the N largest blobs of an image).
+    #[arg(long, value_name = "N", help_heading = "Point clouds")]
+    pub parts: Option<usize>,
+    /// Run the fit through the Bevy plugin in a headless app (needs the `bevy` feature).
+    #[arg(long, help_heading = "Point clouds")]
+    pub app: bool,
+    /// Free the global tapering.
+    #[arg(long, help_heading = "Point clouds")]
+    pub taper: bool,
+    /// Free the global bending.
+    #[arg(long, help_heading = "Point clouds")]
+    pub bend: bool,
+    /// The membrane's update as one backward-Euler step solved by conjugate gradients, with
+    /// local damping γ_d = GAMMA (> 0, e.g. 0.01).
+    #[arg(long, value_name = "GAMMA", value_parser = positive, help_heading = "Point clouds")]
+    pub implicit_local: Option<f64>,
+
+    /// Gaussian blur σ of the image potential, pixels (> 0).
+    #[arg(long, value_name = "PX", value_parser = positive, help_heading = "Images")]
+    pub sigma: Option<f64>,
+    /// Half-width of the band |x3| < F in which image forces act (> 0).
+    #[arg(long, value_name = "F", value_parser = positive, help_heading = "Images")]
+    pub band: Option<f64>,
+    /// Region (balloon) force fraction (≥ 0).
+    #[arg(long, value_name = "F", value_parser = non_negative, help_heading = "Images")]
+    pub region: Option<f64>,
+    /// The paper's image forces on every node in the band, not only the projected outline.
+    #[arg(long, help_heading = "Images")]
+    pub paper_band: bool,
+    /// Let the parts move in depth too.
+    #[arg(long, help_heading = "Images")]
+    pub free_depth: bool,
+    /// Place a part by four pixel points: both ends of the major axis, then of the minor axis.
+    #[arg(long, value_name = "x0,y0,x1,y1,x2,y2,x3,y3", value_parser = part, help_heading = "Images")]
+    pub part: Vec<[DVec2; 4]>,
+    /// Draw the fitted outlines over the image (PNG).
+    #[arg(long, value_name = "FILE.png", help_heading = "Images")]
+    pub out_overlay: Option<PathBuf>,
+
+    /// Write the scene back with every part's fitted state.
+    #[arg(long, value_name = "FILE.dsq.ron", help_heading = "Scenes")]
+    pub out_scene: Option<PathBuf>,
+}
+
+fn number(v: &str) -> Result<f64, String> {
+    v.trim()
+        .parse()
+        .map_err(|_| format!("cannot read {v:?} as a number"))
+}
+
+fn non_negative(v: &str) -> Result<f64, String> {
+    let x = number(v)?;
+    if x.is_finite() && x >= 0.0 {
+        Ok(x)
+    } else {
+        Err(format!("{x} must be a finite number ≥ 0"))
+    }
+}
+
+fn positive(v: &str) -> Result<f64, String> {
+    let x = number(v)?;
+    if x.is_finite() && x > 0.0 {
+        Ok(x)
+    } else {
+        Err(format!("{x} must be a finite number > 0"))
+    }
+}
+
+fn fraction(v: &str) -> Result<f64, String> {
+    let x = number(v)?;
+    if (0.0..1.0).contains(&x) {
+        Ok(x)
+    } else {
+        Err(format!("{x}: expected a fraction in [0, 1)"))
+    }
+}
+
+fn w1(v: &str) -> Result<W1, String> {
+    if v == "auto" {
+        Ok(W1::Auto)
+    } else {
+        non_negative(v).map(W1::Value)
+    }
+}
+
+fn part(v: &str) -> Result<[DVec2; 4], String> {
+    let n: Vec<f64> = v
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("{v:?}: expected 8 numbers x0,y0,x1,y1,x2,y2,x3,y3 (pixels)"))?;
+    if n.len() != 8 || !n.iter().all(|x| x.is_finite()) {
+        return Err(format!(
+            "{v:?}: expected 8 finite numbers x0,y0,x1,y1,x2,y2,x3,y3 (pixels)"
+        ));
+    }
+    Ok([0, 2, 4, 6].map(|i| DVec2::new(n[i], n[i + 1])))
+}
+
+/// Where the data come from.
+pub enum Source {
+    /// A point file.
+    File(PathBuf),
+    /// The paper's egg or mug range experiment.
+    Paper(&'static str),
+    /// An image, its parts placed by `--part` or found as blobs.
+    Image(PathBuf),
+    /// A scene file.
+    Scene(PathBuf),
+}
+
+/// Image-fit settings.
+pub struct ImageArgs {
+    /// The fit's options.
+    pub options: ImageFitOptions,
+    /// Blur of the potential, pixels.
+    pub sigma: f64,
+    /// Parts placed by four points.
+    pub parts: Vec<[DVec2; 4]>,
+    /// Parts to place automatically (the largest blobs).
+    pub auto_parts: usize,
+    /// Where to draw the overlay.
+    pub overlay: Option<PathBuf>,
+}
+
+/// A fit's resolved settings.
+pub struct Args {
+    /// The data.
+    pub source: Source,
+    /// The range fit's options.
+    pub options: FitOptions,
+    /// The image fit's settings (`auto_parts` is also `--parts` for clouds).
+    pub image: ImageArgs,
+    /// `--out-mesh`.
+    pub out_mesh: Option<PathBuf>,
+    /// `--out-params`.
+    pub out_params: Option<PathBuf>,
+    /// `--quiet`.
+    pub quiet: bool,
+    /// `--app`.
+    pub app: bool,
+    /// `--out-scene`.
+    pub out_scene: Option<PathBuf>,
+    /// `--max-steps` as given (a scene caps each part with it).
+    pub max_steps_override: Option<u32>,
+    /// w0 and w1 from the noise the points show (`--w1 auto`, or the default for POINTS).
+    pub stiffness_from_noise: bool,
+    /// `--w1 auto` was given: an estimate that cannot be made is an error.
+    pub stiffness_asked: bool,
+}
+
+impl FitArgs {
+    /// The fitter's settings, and the paper experiment's points for `--paper egg|mug`; an error
+    /// names the option that is wrong or out of place.
+    pub fn resolve(self) -> Result<(Args, Option<Vec<DVec3>>), String> {
+        let mut o = FitOptions::default();
+        let mut image = ImageArgs {
+            options: ImageFitOptions::default(),
+            sigma: DEFAULT_SIGMA,
+            parts: Vec::new(),
+            auto_parts: 1,
+            overlay: self.out_overlay,
+        };
+        let mut image_path = self.image;
+        let mut paper = None;
+        match self.paper {
+            Some(p @ (Paper::Pestle | Paper::Doll)) => {
+                let e = if p == Paper::Pestle {
+                    pestle_experiment()
+                } else {
+                    doll_experiment()
+                };
+                if image_path.is_some() {
+                    return Err("give one of POINTS, --paper, --image or --scene".into());
+                }
+                image_path = Some(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(e.image));
+                image.sigma = e.sigma;
+                image.options = e.options;
+                image.parts = e.parts.iter().map(|p| p.1).collect();
+            }
+            Some(p @ (Paper::Egg | Paper::Mug)) => {
+                let (pts, opts, name) = if p == Paper::Egg {
+                    let (pts, opts) = synthetic::egg_experiment();
+                    (pts, opts, "egg")
+                } else {
+                    let (pts, opts) = synthetic::mug_experiment();
+                    (pts, opts, "mug")
+                };
+                paper = Some((name, pts));
+                o = opts;
+            }
+            None => {}
+        }
+        if self.robust {
+            o = o.robust();
+        }
+        if let Some(n) = self.nodes {
+            let k = (n.saturating_sub(2) as f64).sqrt().round() as usize;
+            if k < 3 || k * k + 2 != n {
+                return Err(format!(
+                    "--nodes {n}: a node count is k² + 2 with k ≥ 3 (e.g. 963, 1683, 2603, 5043); nearest is {}",
+                    k.max(3) * k.max(3) + 2
+                ));
+            }
+            o.k = k;
+            image.options.k = k;
+        }
+        if let Some(k) = self.k {
+            o.k = k as usize;
+            image.options.k = k as usize;
+        }
+        if let Some(w0) = self.w0 {
+            o.dynamics.w0 = w0;
+            image.options.dynamics.w0 = w0;
+        }
+        let (mut stiffness_from_noise, stiffness_asked) =
+            (self.w1 == Some(W1::Auto), self.w1 == Some(W1::Auto));
+        if let Some(W1::Value(w1)) = self.w1 {
+            o.dynamics.w1 = w1;
+            image.options.dynamics.w1 = w1;
+        }
+        let stiffness_given = self.w0.is_some() || matches!(self.w1, Some(W1::Value(_)));
+        if let Some(beta) = self.beta {
+            o.beta = beta;
+            image.options.beta = beta;
+        }
+        if let Some(max_steps) = self.max_steps {
+            o.max_steps = max_steps;
+            image.options.max_steps = max_steps as usize;
+        }
+        if let Some(sigma) = self.sigma {
+            image.sigma = sigma;
+        }
+        if let Some(band) = self.band {
+            image.options.band = band;
+        }
+        if self.paper_band {
+            image.options.outline_only = false;
+        }
+        if self.free_depth {
+            image.options.planar = false;
+        }
+        if let Some(region) = self.region {
+            image.options.region = region;
+        }
+        if let Some(parts) = self.parts {
+            image.auto_parts = parts;
+        }
+        if !self.part.is_empty() {
+            image.parts = self.part;
+        }
+        if let Some(n) = self.reassign {
+            o.reassign_every = n.max(1);
+        }
+        o.global_only |= self.global_only;
+        o.dynamics.free.taper |= self.taper;
+        o.dynamics.free.bend |= self.bend;
+        o.point_to_plane |= self.plane;
+        o.refine |= self.refine;
+        o.switch_cross_section |= self.switch;
+        o.similarity_switch |= self.similar;
+        if let Some(f) = self.outliers {
+            o.outlier_ratio = f;
+        }
+        if self.migrate {
+            o.influence = InfluenceMode::Migrating { rate: 0.5 };
+        }
+        if let Some(gamma) = self.implicit_local {
+            o.dynamics.implicit_local = true;
+            o.dynamics.gamma_local = gamma;
+        }
+        let source = match (self.points, paper.as_ref(), image_path, self.scene) {
+            (Some(p), None, None, None) => Source::File(p),
+            (None, Some((name, _)), None, None) => Source::Paper(name),
+            (None, None, Some(p), None) => Source::Image(p),
+            (None, None, None, Some(p)) => Source::Scene(p),
+            (None, None, None, None) => {
+                return Err("no POINTS file given (dsq fit --help lists the inputs)".into());
+            }
+            _ => return Err("give one of POINTS, --paper, --image or --scene".into()),
+        };
+        let is_file = matches!(source, Source::File(_));
+        if is_file && !self.paper_forces {
+            // The defaults for a user's cloud (docs/cli.md): outlier-robust weights,
+            // point-to-plane springs in the global stage and the membrane's stiffness from the
+            // noise; a pure superquadric also gets the refining stage and the cross-section
+            // switch.
+            let given = o;
+            o = o.for_data();
+            if self.outliers.is_some() {
+                o.outlier_ratio = given.outlier_ratio;
+            }
+            // (w0 and w1 act on the local DOFs only.)
+            stiffness_from_noise |= !stiffness_given && !o.global_only;
+        }
+        if self.paper_forces && !is_file {
+            return Err(
+                "--paper-forces acts on POINTS fits (--paper, --image and --scene keep their own settings)"
+                    .into(),
+            );
+        }
+        if self.out_scene.is_some() && !matches!(source, Source::Scene(_)) {
+            return Err("--out-scene needs --scene".into());
+        }
+        if (self.taper || self.bend) && matches!(source, Source::Image(_) | Source::Scene(_)) {
+            return Err(
+                "--taper and --bend act on point fits; a scene part frees them with free: (taper: true, bend: true)"
+                    .into(),
+            );
+        }
+        if stiffness_from_noise && matches!(source, Source::Image(_) | Source::Scene(_)) {
+            return Err(
+                "--w1 auto reads the noise of a point cloud; give w1 a number for images and scenes"
+                    .into(),
+            );
+        }
+        if self.app && !cfg!(feature = "bevy") {
+            return Err(
+                "--app runs the fit through the Bevy plugin: build dsq with the `bevy` feature"
+                    .into(),
+            );
+        }
+        let args = Args {
+            source,
+            options: o,
+            image,
+            out_mesh: self.out_mesh,
+            out_params: self.out_params,
+            quiet: self.quiet,
+            app: self.app,
+            out_scene: self.out_scene,
+            max_steps_override: self.max_steps,
+            stiffness_from_noise,
+            stiffness_asked,
+        };
+        Ok((args, paper.map(|(_, pts)| pts)))
+    }
+}

@@ -1,0 +1,382 @@
+//! `dsq fit`: runs a fit and prints its JSON lines (the point fitter's, an image's parts', a
+//! scene's parts').
+
+use crate::args::{Args, Source};
+use bevy_deformable_sq::io::{
+    FittedParams, load_luminance, load_points, write_model_obj, write_obj, write_overlay_png,
+};
+use bevy_deformable_sq::model::dynamics::ModelState;
+use bevy_deformable_sq::model::fem::Tessellation;
+use bevy_deformable_sq::model::fit::{
+    FitError, FitOptions, FitReport, Residuals, Stage, bounding_diagonal, fit, point_distances,
+};
+use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
+use bevy_deformable_sq::model::image_fit::{
+    ImagePartFit, PartAxes, fit_image, outline_potential, outline_segments, parts_on, segment,
+    silhouette_iou,
+};
+use bevy_deformable_sq::model::parts::fit_parts;
+use bevy_deformable_sq::scene::{PartRun, SceneData, SceneDef, Split, run_scene};
+use glam::DVec3;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// `--app`: the fit through the plugin in a headless Bevy app.
+#[cfg(feature = "bevy")]
+fn fit_through_app(points: &[DVec3], options: &FitOptions) -> Result<FitReport, FitError> {
+    bevy_deformable_sq::plugin::headless::fit_headless(points, options)
+}
+
+/// `--app` without the `bevy` feature: refused when the options are resolved.
+#[cfg(not(feature = "bevy"))]
+fn fit_through_app(_: &[DVec3], _: &FitOptions) -> Result<FitReport, FitError> {
+    unreachable!("--app is refused without the bevy feature")
+}
+
+/// Runs the fit `args` describes (`paper_points`: the data of `--paper egg|mug`) and prints its
+/// JSON lines.
+pub fn run(args: Args, paper_points: Option<Vec<DVec3>>) -> Result<(), String> {
+    match &args.source {
+        Source::Image(path) => return run_image(path, &args),
+        Source::Scene(path) => return run_scene_file(path, &args),
+        _ => {}
+    }
+    let (points, name) = match (&args.source, paper_points) {
+        (Source::File(path), _) => (
+            load_points(path).map_err(|e| e.to_string())?,
+            path.display().to_string(),
+        ),
+        (Source::Paper(name), Some(pts)) => (pts, format!("paper:{name}")),
+        (Source::Paper(name), None) => return Err(format!("no data for --paper {name}")),
+        (Source::Image(_) | Source::Scene(_), _) => unreachable!("returned above"),
+    };
+    // The wall time includes the noise estimate.
+    let start = Instant::now();
+    // `--w1 auto`: the stiffness from the noise of the whole cloud.
+    let (options, noise) = if args.stiffness_from_noise {
+        let (o, noise) = args.options.with_stiffness_from_noise(&points);
+        // Asked for, the estimate must be made; as a default, too few points keep the paper's
+        // stiffness (and the fit itself says what is wrong with the cloud, if anything).
+        if noise.is_none() && args.stiffness_asked {
+            return Err(format!("{name}: too few points to estimate the noise"));
+        }
+        (o, noise)
+    } else {
+        (args.options, None)
+    };
+    let args = Args { options, ..args };
+    if args.image.auto_parts > 1 {
+        return run_parts(&points, &name, &args);
+    }
+    let quiet = args.quiet;
+    let mut last_print = Instant::now();
+    let report = if args.app {
+        fit_through_app(&points, &args.options)
+    } else {
+        fit(&points, &args.options, |p| {
+        if !quiet && (last_print.elapsed().as_millis() >= 500 || p.step.is_multiple_of(1000)) {
+            last_print = Instant::now();
+            let stage = match p.stage {
+                Stage::Cover => "placing",
+                Stage::Global => "global",
+                Stage::Refine => "refining",
+                Stage::Joint => "global+local",
+            };
+            let rate = p.step as f64 / start.elapsed().as_secs_f64().max(1e-9);
+            eprintln!(
+                "step {:>6}  {stage:<12}  motion {:.2e}  energy {:.4e}  reattached {:>3}x  {:.0} steps/s",
+                p.step, p.max_motion, p.energy, p.reassignments, rate
+            );
+        }
+        })
+    }
+    .map_err(|e| format!("{name}: {e}"))?;
+    let wall = start.elapsed();
+    if let Some(path) = &args.out_mesh {
+        write_model_obj(path, &report.tess, &report.state).map_err(|e| e.to_string())?;
+    }
+    let params = FittedParams::from_report(&report);
+    if let Some(path) = &args.out_params {
+        let json = serde_json::to_string_pretty(&params).map_err(|e| e.to_string())?;
+        std::fs::write(path, json).map_err(|e| format!("{}: cannot write: {e}", path.display()))?;
+    }
+    let through = if args.app { "plugin" } else { "core" };
+    let mut summary = range_summary(
+        &name,
+        &report,
+        points.len(),
+        wall,
+        through,
+        args.options.global_only,
+    );
+    if let Some(noise) = noise {
+        summary["noise"] = noise.relative.into();
+        summary["w0"] = args.options.dynamics.w0.into();
+        summary["w1"] = args.options.dynamics.w1.into();
+    }
+    println!("{summary}");
+    Ok(())
+}
+
+/// `POINTS --parts N`: N parts on one cloud (`model::parts`), one JSON line per part (the point
+/// fitter's, with `part` and its point count) and one for the whole.
+fn run_parts(points: &[DVec3], name: &str, args: &Args) -> Result<(), String> {
+    if args.app {
+        return Err("--app fits one part; drop it or --parts".into());
+    }
+    let k = args.image.auto_parts;
+    let start = Instant::now();
+    let report = fit_parts(points, k, 8, &args.options).map_err(|e| format!("{name}: {e}"))?;
+    let wall = start.elapsed();
+    for (j, part) in report.fits.iter().enumerate() {
+        let n = report.owner.iter().filter(|&&o| o == j).count();
+        let mut line = range_summary(name, part, n, wall, "core", args.options.global_only);
+        line["part"] = serde_json::json!(j);
+        println!("{line}");
+    }
+    println!(
+        "{}",
+        serde_json::json!({
+            "file": name,
+            "parts": k,
+            "points": points.len(),
+            "rounds": report.rounds,
+            "stable": report.stable,
+            "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
+        })
+    );
+    Ok(())
+}
+
+/// Fits parts to an image: placed by `--part` four-point sets, or else the `--parts` largest
+/// blobs of the thresholded image. One JSON line per part, then one for the whole image.
+fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
+    let ia = &args.image;
+    let (w, h, lum) = load_luminance(path).map_err(|e| e.to_string())?;
+    let potential = Arc::new(
+        ImagePotential::new(w, h, lum, ia.sigma, ImageFrame::default())
+            .map_err(|e| format!("{}: {e}", path.display()))?,
+    );
+    let placed: Vec<PartAxes> = if ia.parts.is_empty() {
+        let blobs = segment(&potential, (w * h / 1000).max(20));
+        if blobs.is_empty() {
+            return Err(format!(
+                "{}: no foreground blob found to place a part",
+                path.display()
+            ));
+        }
+        blobs
+            .iter()
+            .take(ia.auto_parts.max(1))
+            .map(|b| PartAxes::from_blob(&potential, b))
+            .collect::<Result<_, _>>()
+            .map_err(|e| format!("{}: {e}", path.display()))?
+    } else {
+        ia.parts
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                PartAxes::from_points(&potential, *p).map_err(|e| format!("--part {}: {e}", i + 1))
+            })
+            .collect::<Result<_, _>>()?
+    };
+    let start = Instant::now();
+    let fits = fit_image(potential.clone(), &placed, &ia.options)
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    let wall = start.elapsed();
+    let tess = Tessellation::new(ia.options.k);
+    let positions = |state: &ModelState| {
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        x
+    };
+    let before: Vec<Vec<DVec3>> = placed.iter().map(|p| positions(&p.state(&tess))).collect();
+    let after: Vec<Vec<DVec3>> = fits.iter().map(|f| positions(&f.state)).collect();
+    if let Some(out) = &args.out_mesh {
+        let mut vertices = Vec::new();
+        let mut triangles = Vec::new();
+        for x in &after {
+            let base = vertices.len() as u32;
+            vertices.extend_from_slice(x);
+            triangles.extend(tess.triangles().iter().map(|t| t.map(|i| i + base)));
+        }
+        let note = format!(
+            "{} deformable superquadrics fitted to {}",
+            after.len(),
+            path.display()
+        );
+        write_obj(out, &vertices, &triangles, &note).map_err(|e| e.to_string())?;
+    }
+    if let Some(out) = &ia.overlay {
+        let outlines: Vec<_> = after.iter().map(|x| outline_segments(&tess, x)).collect();
+        write_overlay_png(out, &potential, &outlines).map_err(|e| e.to_string())?;
+    }
+    let mut all_params = Vec::new();
+    for (i, f) in fits.iter().enumerate() {
+        let line = image_part_line(&path.display().to_string(), i + 1, f, tess.node_count());
+        println!("{line}");
+        all_params.push(line);
+    }
+    if let Some(out) = &args.out_params {
+        let json = serde_json::to_string_pretty(&all_params).map_err(|e| e.to_string())?;
+        std::fs::write(out, json).map_err(|e| format!("{}: cannot write: {e}", out.display()))?;
+    }
+    let summary = serde_json::json!({
+        "file": path.display().to_string(), "parts": fits.len(),
+        "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
+        "converged": fits.iter().all(|f| f.converged),
+        "outline_before": outline_potential(&potential, &parts_on(&tess, &before)),
+        "outline_after": outline_potential(&potential, &parts_on(&tess, &after)),
+        "iou_before": silhouette_iou(&potential, &parts_on(&tess, &before)),
+        "iou_after": silhouette_iou(&potential, &parts_on(&tess, &after)),
+    });
+    println!("{summary}");
+    Ok(())
+}
+
+/// The one-line summary of a range fit (the point fitter's, and a range part's in a scene).
+fn range_summary(
+    name: &str,
+    report: &FitReport,
+    points: usize,
+    wall: Duration,
+    through: &str,
+    global_only: bool,
+) -> serde_json::Value {
+    let (r, shape) = (report.residuals, report.state.shape);
+    serde_json::json!({
+        "file": name,
+        "steps": report.steps,
+        "global_steps": report.global_steps,
+        "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
+        "steps_per_s": (report.steps as f64 / wall.as_secs_f64().max(1e-9)).round(),
+        "points": points,
+        "nodes": report.tess.node_count(),
+        "global_only": global_only,
+        "through": through,
+        "converged": report.converged,
+        "mean": r.mean,
+        "rms": r.rms,
+        "p95": r.p95,
+        "max": r.max,
+        "a": shape.a, "a1": shape.a1, "a2": shape.a2, "a3": shape.a3,
+        "e1": shape.e1, "e2": shape.e2,
+        "taper": report.state.deformation.taper, "bend": report.state.deformation.bend,
+        "refine": report.refinement.map(|r| serde_json::json!({
+            "steps": r.steps, "kept": r.kept, "gave_up": r.gave_up,
+        })),
+    })
+}
+
+/// The one-line summary of one part of an image fit.
+fn image_part_line(file: &str, part: usize, f: &ImagePartFit, nodes: usize) -> serde_json::Value {
+    let s = &f.state;
+    serde_json::json!({
+        "file": file, "part": part, "steps": f.steps,
+        "global_steps": f.global_steps, "converged": f.converged, "nodes": nodes,
+        "outline_before": f.outline_before, "outline_after": f.outline_after,
+        "translation": s.translation.to_array(), "a": s.shape.a, "a1": s.shape.a1,
+        "a2": s.shape.a2, "a3": s.shape.a3, "e1": s.shape.e1, "e2": s.shape.e2,
+    })
+}
+
+/// Runs every part of a scene file to rest without a window: one JSON line per part (a range
+/// part's as the point fitter's, an image part's as an image fit's), with the scene and the part's
+/// name; `--out-mesh` writes every part into one OBJ, `--out-params` a JSON array of the lines,
+/// `--out-scene` the scene with every part's fitted pose, shape and local displacements.
+fn run_scene_file(path: &Path, args: &Args) -> Result<(), String> {
+    let (mut def, data) = SceneDef::load_file(path).map_err(|e| e.to_string())?;
+    let max_steps = args.max_steps_override;
+    let start = Instant::now();
+    let runs = run_scene(&def, &data, max_steps);
+    let wall = start.elapsed();
+    let file = path.display().to_string();
+    let (mut lines, mut vertices, mut triangles) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, (run, part)) in runs.iter().zip(&def.parts).enumerate() {
+        let run = run.as_ref().map_err(|e| format!("{file}: {e}"))?;
+        let tess = Tessellation::new(part.k);
+        let mut line = match run {
+            PartRun::Range(report) => {
+                let n = data.range_points(&def, i).map_or(0, |p| p.len());
+                range_summary(&file, report, n, wall, "core", part.free.global_only)
+            }
+            PartRun::Image(f) => image_part_line(&file, i + 1, f, tess.node_count()),
+            PartRun::Free(_) => serde_json::json!({ "file": file, "steps": 0, "converged": true }),
+        };
+        line["part"] = (i + 1).into();
+        line["name"] = part.name.clone().into();
+        if let Some(noise) = data.noise.get(&i) {
+            line["noise"] = noise.relative.into();
+            line["w0"] = part.w0.into();
+            line["w1"] = part.w1.into();
+        }
+        println!("{line}");
+        lines.push(line);
+        let mut x = Vec::new();
+        run.state().node_positions(&tess, &mut x);
+        let base = vertices.len() as u32;
+        vertices.extend_from_slice(&x);
+        triangles.extend(tess.triangles().iter().map(|t| t.map(|i| i + base)));
+    }
+    for line in split_summaries(&def, &data, &runs, &file) {
+        println!("{line}");
+        lines.push(line);
+    }
+    if let Some(out) = &args.out_mesh {
+        let note = format!("{} parts of scene {file}", def.parts.len());
+        write_obj(out, &vertices, &triangles, &note).map_err(|e| e.to_string())?;
+    }
+    if let Some(out) = &args.out_params {
+        let json = serde_json::to_string_pretty(&lines).map_err(|e| e.to_string())?;
+        std::fs::write(out, json).map_err(|e| format!("{}: cannot write: {e}", out.display()))?;
+    }
+    if let Some(out) = &args.out_scene {
+        for (i, run) in runs.iter().enumerate() {
+            if let Ok(run) = run {
+                def.set_state(i, run.state(), true);
+            }
+        }
+        let from = path.parent().unwrap_or(Path::new(""));
+        def.rebase(from, out.parent().unwrap_or(Path::new("")));
+        def.save(out).map_err(|e| e.to_string())?;
+    }
+    Ok(())
+}
+
+/// One JSON line per source its parts share: how the split went and the distance of every point
+/// to the surface of the part it pulls on, over the whole cloud's bounding-box diagonal.
+fn split_summaries(
+    def: &SceneDef,
+    data: &SceneData,
+    runs: &[Result<PartRun, String>],
+    file: &str,
+) -> Vec<serde_json::Value> {
+    let mut sources: Vec<(&String, &Split)> = data.splits.iter().collect();
+    sources.sort_by_key(|(name, _)| *name);
+    sources
+        .into_iter()
+        .map(|(name, split)| {
+            let mut parts: Vec<usize> = split.owner.to_vec();
+            parts.sort_unstable();
+            parts.dedup();
+            let mut d = Vec::new();
+            for &i in &parts {
+                let (Some(Ok(run)), Some(pts)) = (runs.get(i), data.range_points(def, i)) else {
+                    continue;
+                };
+                let tess = Tessellation::new(def.parts[i].k);
+                let mut x = Vec::new();
+                run.state().node_positions(&tess, &mut x);
+                d.extend(point_distances(&tess, &x, &pts));
+            }
+            let all = data.points.get(name).map_or(&[][..], |p| p.as_slice());
+            let r = Residuals::of(d, bounding_diagonal(all));
+            serde_json::json!({
+                "file": file, "data": name, "parts": parts.len(), "points": all.len(),
+                "rounds": split.rounds, "stable": split.stable, "moved": split.moved,
+                "mean": r.mean, "p95": r.p95, "max": r.max,
+            })
+        })
+        .collect()
+}
