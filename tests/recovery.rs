@@ -391,7 +391,7 @@ fn the_noisy_cylinders_refinement_comes_to_rest_on_the_continuous_surface() {
     // EMS's noisy cylinder with outliers. Projected onto the mesh's chords, its refinement first
     // came closer to the points, then its length ran away, and was given up after 2003 steps; on
     // the continuous superquadric it comes to rest closer (measured: in 140 steps), and with the
-    // squareness extension the fit is closer than EMS's (README "Side by side with EMS").
+    // squareness extension the fit is closer than EMS's (docs/results.md, "Side by side with EMS").
     let (_, report) = pure_robust_fit("ems/noisy_pointCloud_example_2.ply");
     let stage = report.refinement.expect("the robust options refine");
     assert!(stage.kept && !stage.gave_up, "{stage:?}");

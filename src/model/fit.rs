@@ -27,9 +27,10 @@ use super::dynamics::{
 };
 use super::fem::Tessellation;
 use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces, Robust};
-use super::init::{InitialPose, initial_pose, moments};
+pub use super::init::Normalization;
+use super::init::{InitialPose, initial_pose};
 use super::superquadric::{LEAST_EPSILON, MIN_EPSILON, SuperquadricParams};
-use crate::model::forces::range::kd_tree;
+use crate::model::forces::nearest::kd_tree;
 use glam::DVec3;
 use kiddo::SquaredEuclidean;
 use std::f64::consts::SQRT_2;
@@ -257,7 +258,7 @@ impl FitOptions {
 
 impl FitOptions {
     /// These options as the command-line fitter sets them for a user's cloud (all beyond the
-    /// paper; README "The command-line fitter"): outlier-robust weights with the prior outlier
+    /// paper; docs/cli.md): outlier-robust weights with the prior outlier
     /// fraction [`ROBUST_OUTLIER_RATIO`] unless one is set, point-to-plane springs in the global
     /// stage, and — for a pure superquadric ([`FitOptions::global_only`]) — the refining stage and
     /// both switches, i.e. [`FitOptions::robust`]. With local DOFs the refining stage and the
@@ -437,63 +438,6 @@ pub struct Refinement {
     pub before: f64,
     /// See [`Refinement::before`].
     pub after: f64,
-}
-
-/// The normalisation that maps data to a centred unit-RMS frame and back.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Normalization {
-    /// Data centroid.
-    pub centroid: DVec3,
-    /// Data RMS radius about the centroid.
-    pub scale: f64,
-}
-
-impl Normalization {
-    /// The normalisation of `points`.
-    pub fn of(points: &[DVec3]) -> Self {
-        let centroid = moments(points).centroid;
-        let scale = (points
-            .iter()
-            .map(|p| p.distance_squared(centroid))
-            .sum::<f64>()
-            / points.len().max(1) as f64)
-            .sqrt();
-        Self { centroid, scale }
-    }
-    /// Maps a point from data units to the unit frame.
-    pub fn unit_point(&self, p: DVec3) -> DVec3 {
-        (p - self.centroid) / self.scale
-    }
-    /// Maps a pose from data units to the unit frame.
-    pub fn pose_to_unit(&self, pose: &InitialPose) -> InitialPose {
-        let mut shape = pose.shape;
-        shape.a /= self.scale;
-        InitialPose {
-            translation: self.unit_point(pose.translation),
-            rotation: pose.rotation,
-            shape,
-        }
-    }
-    /// Maps a start pose from the unit frame back to data units (as a state started there would
-    /// report it: the shape normalised).
-    pub fn pose_to_data(&self, tess: &Tessellation, pose: &InitialPose) -> InitialPose {
-        let start = ModelState::new(tess, pose.translation, pose.rotation, pose.shape);
-        InitialPose::of(&self.state_to_data(&start))
-    }
-
-    /// Maps a state from the unit frame back to data units.
-    pub fn state_to_data(&self, s: &ModelState) -> ModelState {
-        let mut shape = s.shape;
-        shape.a *= self.scale;
-        ModelState {
-            translation: self.centroid + s.translation * self.scale,
-            rotation: s.rotation,
-            shape,
-            // Tapering and bending are dimensionless: the same at any scale.
-            deformation: s.deformation,
-            displacement: s.displacement.iter().map(|d| *d * self.scale).collect(),
-        }
-    }
 }
 
 /// Checks the points a fit is given.
@@ -698,7 +642,7 @@ pub const EXTENDED_EPSILONS: [f64; 4] = [0.05, 0.03, 0.02, LEAST_EPSILON];
 /// EMS's noisy cylinder (`noisy_pointCloud_example_2`), whose robust fit came to rest at ε1 =
 /// 0.1, is the case: the extension takes ε1 to 0.01 and the mean distance of the points to the
 /// surface from 0.01485 to 0.01468 of the diagonal, EMS's own fit (ε1 = 0.01) lying 0.01473
-/// from them (README "Side by side with EMS").
+/// from them (docs/results.md, "Side by side with EMS").
 pub fn extend_squareness(
     tess: &Tessellation,
     state: &ModelState,

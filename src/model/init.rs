@@ -9,6 +9,8 @@
 //! come from the robust extent (1st–99th percentile) of the data along each axis, so a one-view
 //! scan, whose centroid lies off-centre, still gets a box around what was seen.
 
+use super::dynamics::ModelState;
+use super::fem::Tessellation;
 use super::linalg::symmetric_eigen3;
 use super::superquadric::SuperquadricParams;
 use glam::{DMat3, DQuat, DVec3};
@@ -112,6 +114,63 @@ pub fn initial_pose(points: &[DVec3]) -> InitialPose {
             e1: 1.0,
             e2: 1.0,
         },
+    }
+}
+
+/// The normalisation that maps data to a centred unit-RMS frame and back.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Normalization {
+    /// Data centroid.
+    pub centroid: DVec3,
+    /// Data RMS radius about the centroid.
+    pub scale: f64,
+}
+
+impl Normalization {
+    /// The normalisation of `points`.
+    pub fn of(points: &[DVec3]) -> Self {
+        let centroid = moments(points).centroid;
+        let scale = (points
+            .iter()
+            .map(|p| p.distance_squared(centroid))
+            .sum::<f64>()
+            / points.len().max(1) as f64)
+            .sqrt();
+        Self { centroid, scale }
+    }
+    /// Maps a point from data units to the unit frame.
+    pub fn unit_point(&self, p: DVec3) -> DVec3 {
+        (p - self.centroid) / self.scale
+    }
+    /// Maps a pose from data units to the unit frame.
+    pub fn pose_to_unit(&self, pose: &InitialPose) -> InitialPose {
+        let mut shape = pose.shape;
+        shape.a /= self.scale;
+        InitialPose {
+            translation: self.unit_point(pose.translation),
+            rotation: pose.rotation,
+            shape,
+        }
+    }
+    /// Maps a start pose from the unit frame back to data units (as a state started there would
+    /// report it: the shape normalised).
+    pub fn pose_to_data(&self, tess: &Tessellation, pose: &InitialPose) -> InitialPose {
+        let start = ModelState::new(tess, pose.translation, pose.rotation, pose.shape);
+        InitialPose::of(&self.state_to_data(&start))
+    }
+
+    /// Maps a state from the unit frame back to data units.
+    pub fn state_to_data(&self, s: &ModelState) -> ModelState {
+        let mut shape = s.shape;
+        shape.a *= self.scale;
+        ModelState {
+            translation: self.centroid + s.translation * self.scale,
+            rotation: s.rotation,
+            shape,
+            // Tapering and bending are dimensionless: the same at any scale.
+            deformation: s.deformation,
+            displacement: s.displacement.iter().map(|d| *d * self.scale).collect(),
+        }
     }
 }
 

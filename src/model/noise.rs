@@ -16,12 +16,11 @@
 //! scale whatever the data's units; only the noise relative to that scale matters. The membrane
 //! must not follow the noise: [`stiffness_for_noise`] keeps the paper's w1 = 0.1 on clean data and
 //! raises w1 in proportion to the relative noise above a threshold, a rule fitted to the sweep of
-//! `examples/noise.rs` (README, "Noise and the membrane's stiffness").
+//! `examples/noise.rs` (docs/results.md, "Noise and the membrane's stiffness").
 
-use super::fit::Normalization;
-use super::init::{Moments, moments};
+use super::init::{Moments, Normalization, moments};
 use super::linalg::{cholesky_solve, symmetric_eigen3};
-use crate::model::forces::range::kd_tree;
+use crate::model::forces::nearest::kd_tree;
 use glam::DVec3;
 use kiddo::SquaredEuclidean;
 use std::num::NonZeroUsize;

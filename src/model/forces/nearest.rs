@@ -11,7 +11,7 @@
 //! [`NodeGrid::nearest_each`], a query after one that was more than [`FAR_CELLS`] cells from its
 //! nearest node.
 //!
-//! The answer is the nearest node: [`super::range::nearest_indices_brute`]'s, since both compare
+//! The answer is the nearest node: [`nearest_indices_brute`]'s, since both compare
 //! the same squared distances computed the same way. Between nodes at the same distance the grid
 //! takes the lowest index, as the brute force does, and the k-d tree whichever it meets first.
 
@@ -278,7 +278,7 @@ impl<'a> NodeGrid<'a> {
     /// The k-d tree's answer for `q` and its squared distance (the brute force's where kiddo
     /// cannot build a tree).
     fn tree_nearest(&self, q: DVec3) -> (u32, f64) {
-        let tree = self.tree.get_or_init(|| super::range::kd_tree(self.nodes));
+        let tree = self.tree.get_or_init(|| kd_tree(self.nodes));
         let i = match tree {
             Some(tree) => {
                 tree.query(&q.to_array())
@@ -286,16 +286,65 @@ impl<'a> NodeGrid<'a> {
                     .execute()
                     .item
             }
-            None => super::range::nearest_indices_brute(self.nodes, &[q])[0],
+            None => nearest_indices_brute(self.nodes, &[q])[0],
         };
         (i, self.nodes[i as usize].distance_squared(q))
     }
 }
 
+/// For every query point, the index of the nearest point of `nodes` (usually the model's nodes),
+/// by a grid of `nodes` ([`NodeGrid::nearest_each`]). Where no grid can be built (a non-finite
+/// node, or none) a k-d tree over `nodes` answers, and [`nearest_indices_brute`] where that
+/// cannot be built either.
+pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
+    if let Some(grid) = NodeGrid::new(nodes) {
+        return grid.nearest_each(points);
+    }
+    match kd_tree(nodes) {
+        Some(tree) => query_nearest(&tree, points),
+        None => nearest_indices_brute(nodes, points),
+    }
+}
+
+/// A k-d tree over `points` (entry i is `points[i]`), or `None` where kiddo cannot build one.
+pub(crate) fn kd_tree(points: &[DVec3]) -> Option<ImmutableKdTree<f64, 3>> {
+    let entries: Vec<[f64; 3]> = points.iter().map(|p| p.to_array()).collect();
+    ImmutableKdTree::<f64, 3>::new_from_slice(&entries).ok()
+}
+
+/// For every query point, the index of the nearest entry of `tree`.
+pub(crate) fn query_nearest(tree: &ImmutableKdTree<f64, 3>, points: &[DVec3]) -> Vec<u32> {
+    points
+        .iter()
+        .map(|p| {
+            tree.query(&p.to_array())
+                .nearest_one::<SquaredEuclidean<f64>>()
+                .execute()
+                .item
+        })
+        .collect()
+}
+
+/// The paper's O(mn) brute-force nearest-node search (the reference for [`nearest_indices`]).
+pub fn nearest_indices_brute(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
+    points
+        .iter()
+        .map(|p| {
+            let mut best = (f64::INFINITY, 0u32);
+            for (i, n) in nodes.iter().enumerate() {
+                let d = n.distance_squared(*p);
+                if d < best.0 {
+                    best = (d, i as u32);
+                }
+            }
+            best.1
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::forces::range::{nearest_indices, nearest_indices_brute};
 
     /// Points in a box, reproducibly (a linear congruential generator).
     fn scattered(n: usize, seed: u64, lo: f64, hi: f64) -> Vec<DVec3> {

@@ -63,11 +63,12 @@
 
 use crate::model::dynamics::{ModelSurface, NodalForces};
 use crate::model::fem::{ElementPoint, Tessellation};
-use crate::model::forces::nearest::NodeGrid;
+use crate::model::forces::nearest::{kd_tree, query_nearest};
+pub use crate::model::forces::nearest::{nearest_indices, nearest_indices_brute};
 use crate::model::simd::with_avx2;
 use crate::model::superquadric::Trig;
 use glam::DVec3;
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use kiddo::ImmutableKdTree;
 use rayon::prelude::*;
 use std::sync::Arc;
 
@@ -248,39 +249,6 @@ pub const WEIGHTS_SETTLED: f64 = 0.01;
 /// enters it squared), and trying the move would cost a second evaluation of the surface.
 pub const MIGRATION_AT_FOOT: f64 = 1e-3;
 
-/// For every query point, the index of the nearest point of `nodes` (usually the model's nodes),
-/// by a grid of `nodes` ([`NodeGrid::nearest_each`]). Where no grid can be built (a non-finite
-/// node, or none) a k-d tree over `nodes` answers, and [`nearest_indices_brute`] where that
-/// cannot be built either.
-pub fn nearest_indices(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
-    if let Some(grid) = NodeGrid::new(nodes) {
-        return grid.nearest_each(points);
-    }
-    match kd_tree(nodes) {
-        Some(tree) => query_nearest(&tree, points),
-        None => nearest_indices_brute(nodes, points),
-    }
-}
-
-/// A k-d tree over `points` (entry i is `points[i]`), or `None` where kiddo cannot build one.
-pub(crate) fn kd_tree(points: &[DVec3]) -> Option<ImmutableKdTree<f64, 3>> {
-    let entries: Vec<[f64; 3]> = points.iter().map(|p| p.to_array()).collect();
-    ImmutableKdTree::<f64, 3>::new_from_slice(&entries).ok()
-}
-
-/// For every query point, the index of the nearest entry of `tree`.
-fn query_nearest(tree: &ImmutableKdTree<f64, 3>, points: &[DVec3]) -> Vec<u32> {
-    points
-        .iter()
-        .map(|p| {
-            tree.query(&p.to_array())
-                .nearest_one::<SquaredEuclidean<f64>>()
-                .execute()
-                .item
-        })
-        .collect()
-}
-
 /// The k-d tree of a [`RangeForces`]' own data points, for the coverage springs' search of each
 /// node's nearest point: built at the first reassignment that needs it and kept, since the
 /// points never change (it used to be built again at every reassignment). Its answers are
@@ -405,23 +373,6 @@ fn morton_spread(x: u32) -> u32 {
     x = (x | (x << 8)) & 0x0300_f00f;
     x = (x | (x << 4)) & 0x030c_30c3;
     (x | (x << 2)) & 0x0924_9249
-}
-
-/// The paper's O(mn) brute-force nearest-node search (the reference for [`nearest_indices`]).
-pub fn nearest_indices_brute(nodes: &[DVec3], points: &[DVec3]) -> Vec<u32> {
-    points
-        .iter()
-        .map(|p| {
-            let mut best = (f64::INFINITY, 0u32);
-            for (i, n) in nodes.iter().enumerate() {
-                let d = n.distance_squared(*p);
-                if d < best.0 {
-                    best = (d, i as u32);
-                }
-            }
-            best.1
-        })
-        .collect()
 }
 
 impl RangeForces {
