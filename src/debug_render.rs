@@ -33,20 +33,44 @@ impl Default for DebugRenderConfig {
     }
 }
 
-/// Draws range data, data springs, user springs and joints with gizmos.
+/// The gizmo group the debug gizmos draw in: switch them off, or change their line width, through
+/// Bevy's `GizmoConfigStore` without touching other gizmos.
+#[derive(Default, Reflect, GizmoConfigGroup)]
+pub struct DeformableSqGizmos;
+
+/// Draws range data, data springs, user springs and joints with gizmos ([`DeformableSqGizmos`]),
+/// in [`PostUpdate`]. It needs Bevy's `GizmoPlugin` (in `DefaultPlugins`), added before or after
+/// it (registered at once when it is there, else when the app's plugins are finished); without
+/// one (a headless app) it draws nothing.
 pub struct DeformableSqDebugPlugin;
 
 impl Plugin for DeformableSqDebugPlugin {
     fn build(&self, app: &mut App) {
         app.init_resource::<DebugRenderConfig>()
-            .register_type::<DebugRenderConfig>()
+            .register_type::<DebugRenderConfig>();
+        register_gizmos(app);
+    }
+
+    fn finish(&self, app: &mut App) {
+        register_gizmos(app);
+    }
+}
+
+/// The gizmo group and the drawing system, once, where Bevy's gizmos exist.
+fn register_gizmos(app: &mut App) {
+    if app.is_plugin_added::<bevy::gizmos::GizmoPlugin>()
+        && !app
+            .world()
+            .contains_resource::<bevy::gizmos::gizmos::GizmoStorage<DeformableSqGizmos, ()>>()
+    {
+        app.init_gizmo_group::<DeformableSqGizmos>()
             .add_systems(PostUpdate, draw_debug);
     }
 }
 
 /// The gizmo system.
 pub fn draw_debug(
-    mut gizmos: Gizmos,
+    mut gizmos: Gizmos<DeformableSqGizmos>,
     config: Res<DebugRenderConfig>,
     models: Query<(
         &FemMesh,

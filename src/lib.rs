@@ -10,9 +10,10 @@
 //!
 //! ## Getting started
 //!
-//! Add `DeformableSqPlugin` to an app and spawn `(GlobalShape { .. }, RigidState { .. })` with
-//! `RangeData` (points), `ImageData` (an image) or `SpringForces` (springs to world anchors); the
-//! other components are required components with defaults. `use bevy_deformable_sq::prelude::*`
+//! Add `DeformableSqPlugins` (or the simulation alone, `DeformableSqPlugin`) to an app and spawn
+//! `(GlobalShape { .. }, RigidState { .. })` with `RangeData` (points), `ImageData` (an image) or
+//! `SpringForces` (springs to world anchors); the other components are required components with
+//! defaults. `use bevy_deformable_sq::prelude::*`
 //! brings in what an app needs. Without Bevy, [`model::fit::fit`] fits a point cloud in one call,
 //! and the `dsq` binary does the same from the command line.
 //!
@@ -23,7 +24,8 @@
 //! | `bevy` | yes | `plugin` and `render`: the plugin, its components and systems, the meshes |
 //! | `serialize` | yes | serde derives on the components |
 //! | `debug_render` | yes | `debug_render::DeformableSqDebugPlugin`: gizmos for data and springs |
-//! | `picking`, `egui` | no | Bevy picking and bevy_egui |
+//! | `picking` | no | `picking::MouseSpringPlugin`: pull models with the mouse |
+//! | `egui` | no | bevy_egui, for the inspector panel |
 //! | `hot_reload` | no | scene files reload when they change on disk |
 //! | `examples` | no | a window, a font, picking and egui, for the windowed examples |
 //!
@@ -44,6 +46,8 @@
 pub mod debug_render;
 pub mod io;
 pub mod model;
+#[cfg(feature = "picking")]
+pub mod picking;
 #[cfg(feature = "bevy")]
 pub mod plugin;
 #[cfg(feature = "bevy")]
@@ -54,11 +58,22 @@ pub mod synthetic;
 #[cfg(feature = "bevy")]
 pub use plugin::{DeformableSqPlugin, DeformableSqSystems};
 
+#[cfg(feature = "bevy")]
+mod plugins;
+#[cfg(feature = "bevy")]
+pub use plugins::DeformableSqPlugins;
+
 /// The types a Bevy app needs: `use bevy_deformable_sq::prelude::*;`.
 #[cfg(feature = "bevy")]
 pub mod prelude {
+    pub use crate::DeformableSqPlugins;
     #[cfg(feature = "debug_render")]
-    pub use crate::debug_render::{DebugRenderConfig, DeformableSqDebugPlugin};
+    pub use crate::debug_render::{DebugRenderConfig, DeformableSqDebugPlugin, DeformableSqGizmos};
+    #[cfg(feature = "picking")]
+    pub use crate::picking::{
+        ModelGrabbed, MouseSpring, MouseSpringPlugin, MouseSpringSettings, MouseSpringSystems,
+    };
+    pub use crate::plugin::scene::DeformableSqScenePlugin;
     pub use crate::plugin::scene::{
         DeformableScene, DeformableSceneCamera, DeformableSceneRoot, SceneImage, SceneInstance,
         ScenePart,
@@ -68,5 +83,5 @@ pub mod prelude {
         LocalDofs, ModelSettings, PartJoint, RangeData, RigidState, SimControl, Spring,
         SpringForces, simulation_task_pools,
     };
-    pub use crate::render::{ModelColor, ModelMesh};
+    pub use crate::render::{DeformableSqRenderPlugin, ModelColor, ModelMesh};
 }

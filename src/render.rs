@@ -16,24 +16,21 @@ use bevy::prelude::*;
 #[derive(Component, Clone, Debug)]
 pub struct ModelMesh(pub Handle<Mesh>);
 
-/// The colour a model is drawn in (otherwise one from a palette is chosen at spawn).
-#[derive(Component, Reflect, Clone, Copy, Debug, PartialEq)]
-#[reflect(Component, Debug, PartialEq)]
-pub struct ModelColor(pub Color);
+pub use crate::plugin::components::{ModelColor, PALETTE};
 
-/// Readable, distinct part colours.
-pub const PALETTE: [Color; 8] = [
-    Color::srgb(0.90, 0.45, 0.20),
-    Color::srgb(0.25, 0.55, 0.90),
-    Color::srgb(0.35, 0.75, 0.35),
-    Color::srgb(0.85, 0.30, 0.55),
-    Color::srgb(0.95, 0.80, 0.25),
-    Color::srgb(0.55, 0.40, 0.85),
-    Color::srgb(0.30, 0.80, 0.80),
-    Color::srgb(0.70, 0.70, 0.70),
-];
+/// Draws every model as a dynamic [`Mesh3d`] whose vertices follow its surface, and a scene's
+/// image as a backdrop (in [`PostUpdate`], where [`Assets<Mesh>`] exists: with the render
+/// plugins; without them it does nothing). Part of [`crate::DeformableSqPlugins`].
+#[derive(Default)]
+pub struct DeformableSqRenderPlugin;
 
-pub(crate) fn build(app: &mut App) {
+impl Plugin for DeformableSqRenderPlugin {
+    fn build(&self, app: &mut App) {
+        build(app);
+    }
+}
+
+fn build(app: &mut App) {
     app.register_type::<ModelColor>().add_systems(
         PostUpdate,
         (

@@ -780,3 +780,118 @@ fn a_joint_keeps_a_pulled_part_attached_to_another() {
     assert!(moved > 0.3, "the pulled ball moved {moved}");
     assert!(together < 1e-3, "the joint opened by {together}");
 }
+
+/// Every schedule the plugins add systems to, built with ambiguity detection as an error: no two
+/// of the crate's systems touch the same data in an undefined order.
+#[test]
+fn the_plugins_systems_have_no_ambiguities() {
+    use bevy::ecs::schedule::{LogLevel, ScheduleBuildSettings, ScheduleLabel};
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        bevy::asset::AssetPlugin::default(),
+        DeformableSqPlugins::in_schedule(Update),
+    ));
+    for label in [Update.intern(), PreUpdate.intern(), PostUpdate.intern()] {
+        app.edit_schedule(label, |s| {
+            s.set_build_settings(ScheduleBuildSettings {
+                ambiguity_detection: LogLevel::Error,
+                ..default()
+            });
+        });
+    }
+    let points = superquadric_cloud(
+        &SuperquadricParams::default(),
+        DVec3::ZERO,
+        DQuat::IDENTITY,
+        300,
+        0.0,
+        3,
+    );
+    app.world_mut().spawn((
+        GlobalShape::default(),
+        RigidState::default(),
+        RangeData::new(points),
+    ));
+    // A schedule with an ambiguity fails to build, and `update` panics.
+    for _ in 0..3 {
+        app.update();
+    }
+    let mut q = app.world_mut().query::<&SimControl>();
+    assert!(q.iter(app.world()).all(|c| c.steps == 3 && !c.frozen));
+}
+
+/// A press on a model through Bevy picking attaches a mouse spring, a drag-free release removes
+/// it, and no press grabs while the mouse springs are switched off.
+#[cfg(feature = "picking")]
+#[test]
+fn a_press_grabs_a_model_with_a_mouse_spring_and_a_release_lets_go() {
+    use bevy::camera::NormalizedRenderTarget;
+    use bevy::picking::backend::HitData;
+    use bevy::picking::events::{Pointer, Press, Release};
+    use bevy::picking::pointer::{Location, PointerButton, PointerId};
+    let mut app = app();
+    app.add_plugins(MouseSpringPlugin);
+    let model = app
+        .world_mut()
+        .spawn((GlobalShape::default(), RigidState::default()))
+        .id();
+    run_steps(&mut app, 1);
+    let location = Location {
+        target: NormalizedRenderTarget::None {
+            width: 64,
+            height: 64,
+        },
+        position: Vec2::ZERO,
+    };
+    // The unit sphere's point on +x.
+    let hit = HitData::new(Entity::PLACEHOLDER, 1.0, Some(Vec3::X), None);
+    let press = |button| {
+        Pointer::new(
+            PointerId::Mouse,
+            location.clone(),
+            Press {
+                button,
+                hit: hit.clone(),
+                count: 1,
+            },
+            model,
+        )
+    };
+    let springs = |app: &App| {
+        app.world()
+            .get::<SpringForces>(model)
+            .map_or(0, |s| s.0.len())
+    };
+    // Only the primary button grabs.
+    app.world_mut().trigger(press(PointerButton::Secondary));
+    assert_eq!(app.world().resource::<MouseSpring>().model, None);
+    app.world_mut().trigger(press(PointerButton::Primary));
+    app.world_mut().flush();
+    let mouse = *app.world().resource::<MouseSpring>();
+    assert_eq!(mouse.model, Some(model));
+    assert_eq!(springs(&app), 1);
+    let spring = app.world().get::<SpringForces>(model).unwrap().0[0];
+    assert!(spring.stiffness > 0.0 && spring.anchor.distance(DVec3::X) < 0.2);
+    let messages = app.world().resource::<Messages<ModelGrabbed>>();
+    assert_eq!(messages.len(), 1);
+    app.world_mut().trigger(Pointer::new(
+        PointerId::Mouse,
+        location.clone(),
+        Release {
+            button: PointerButton::Primary,
+            hit: hit.clone(),
+        },
+        model,
+    ));
+    assert_eq!(app.world().resource::<MouseSpring>().model, None);
+    assert_eq!(springs(&app), 0);
+    // Switched off, a press does nothing.
+    app.world_mut()
+        .resource_mut::<MouseSpringSettings>()
+        .enabled = false;
+    app.world_mut().trigger(press(PointerButton::Primary));
+    app.world_mut().flush();
+    assert_eq!(app.world().resource::<MouseSpring>().model, None);
+    assert_eq!(springs(&app), 0);
+}

@@ -619,6 +619,7 @@ fn scene_app(assets: &Path) -> App {
             ..default()
         },
         DeformableSqPlugin::in_schedule(Step),
+        DeformableSqScenePlugin,
     ));
     app.init_schedule(Step);
     app
@@ -944,10 +945,14 @@ fn axes_placement_matches_the_image_fitters() {
 }
 
 #[test]
-fn the_readme_example_scene_parses_and_loads() {
+fn the_documented_example_scene_parses_and_loads() {
     let readme =
-        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
-    let start = readme.find("```ron\n").expect("README has a ron block") + "```ron\n".len();
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/scene-format.md"))
+            .unwrap();
+    let start = readme
+        .find("```ron\n")
+        .expect("docs/scene-format.md has a ron block")
+        + "```ron\n".len();
     let text = &readme[start..start + readme[start..].find("```").unwrap()];
     // Its paths are written as from `assets/scenes/`.
     let file = shipped("readme-example");
@@ -1094,4 +1099,28 @@ fn a_bad_joint_is_refused_naming_the_field() {
         let e = parse_err(&text);
         assert_names(&e, Some(field), None, what);
     }
+}
+
+/// The plugin group added before Bevy's `AssetPlugin` still loads scene files: the loader is
+/// registered when the app's plugins are finished, not when the group is added.
+#[test]
+fn scenes_load_whichever_order_the_plugins_are_added_in() {
+    let assets = shipped_assets();
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        DeformableSqPlugins::in_schedule(Step),
+        AssetPlugin {
+            file_path: assets.display().to_string(),
+            ..default()
+        },
+    ));
+    app.init_schedule(Step);
+    // What `App::run` does before its first update.
+    app.finish();
+    app.cleanup();
+    let root = load(&mut app, "scenes/egg.dsq.ron");
+    let instance = app.world().get::<SceneInstance>(root).unwrap();
+    assert!(instance.error.is_none(), "{:?}", instance.error);
+    assert_eq!(parts(&app, root).len(), 1);
 }

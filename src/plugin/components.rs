@@ -597,7 +597,7 @@ pub struct Scratch {
 pub(crate) type StateTicks = [bevy::ecs::change_detection::Tick; 4];
 
 /// A model's mesh and state as the systems that only read them see them, with their change
-/// ticks ([`Scratch::current_positions`]).
+/// ticks (`Scratch::current_positions`).
 #[derive(bevy::ecs::query::QueryData)]
 pub struct ModelStateRef {
     /// The model's entity.
@@ -741,3 +741,20 @@ pub(crate) fn put_state(
     shape.set_if_neq(GlobalShape::new(state.shape, state.deformation));
     local.displacement = state.displacement;
 }
+
+/// The colour a model is drawn in (otherwise one from a palette is chosen at spawn).
+#[derive(Component, Reflect, Clone, Copy, Debug, PartialEq)]
+#[reflect(Component, Debug, PartialEq)]
+pub struct ModelColor(pub Color);
+
+/// Readable, distinct part colours.
+pub const PALETTE: [Color; 8] = [
+    Color::srgb(0.90, 0.45, 0.20),
+    Color::srgb(0.25, 0.55, 0.90),
+    Color::srgb(0.35, 0.75, 0.35),
+    Color::srgb(0.85, 0.30, 0.55),
+    Color::srgb(0.95, 0.80, 0.25),
+    Color::srgb(0.55, 0.40, 0.85),
+    Color::srgb(0.30, 0.80, 0.80),
+    Color::srgb(0.70, 0.70, 0.70),
+];

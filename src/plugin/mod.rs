@@ -138,11 +138,11 @@ impl Plugin for DeformableSqPlugin {
             );
         #[cfg(debug_assertions)]
         app.add_systems(self.schedule, systems::assert_finite.in_set(WriteBack));
-        crate::render::build(app);
-        // Scene files are assets: with an `AssetPlugin` (added before this plugin, as
-        // `DefaultPlugins` does) the scene loader and spawner come too.
-        if app.is_plugin_added::<bevy::asset::AssetPlugin>() {
-            scene::build(app);
-        }
+        // The models' `Transform`s are written before Bevy propagates them, whichever schedule
+        // the plugin runs in (a no-op constraint where that schedule propagates nothing).
+        app.configure_sets(
+            self.schedule,
+            WriteBack.before(bevy::transform::TransformSystems::Propagate),
+        );
     }
 }

@@ -14,17 +14,18 @@
 //!     commands.spawn(DeformableSceneRoot(assets.load("scenes/egg.dsq.ron")));
 //!     commands.spawn((Camera3d::default(), DeformableSceneCamera));
 //! }
-//! # App::new().add_plugins((DefaultPlugins, DeformableSqPlugin::default())).add_systems(Startup, setup);
+//! # App::new().add_plugins((DefaultPlugins, DeformableSqPlugins::default())).add_systems(Startup, setup);
 //! ```
 
+use super::components::{ModelColor, PALETTE};
 use super::{
     FemMesh, FitDriver, GlobalShape, ImageData, Inertia, LocalDofs, ModelSettings, PartJoint,
     RangeData, RigidState,
 };
 use crate::model::dynamics::ModelState;
-use crate::model::fit::{Normalization, Stage, global_stages, has_joint_stage};
+use crate::model::fit::{Stage, global_stages, has_joint_stage};
 use crate::model::forces::range::RangeForces;
-use crate::render::{ModelColor, PALETTE};
+use crate::model::init::Normalization;
 use crate::scene::{Forces, JointDef, PartDef, SCENE_EXTENSION, SceneData, SceneDef, SceneError};
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext, LoadState};
@@ -440,7 +441,38 @@ pub fn save_scene(
 }
 
 /// Registers the asset and its loader and the spawning system (needs `AssetPlugin`).
-pub(crate) fn build(app: &mut App) {
+/// Scene files as assets: the `.dsq.ron` loader, and the spawning of a [`DeformableSceneRoot`]'s
+/// parts in [`PreUpdate`]. It needs Bevy's `AssetPlugin` (in `DefaultPlugins`), added before or
+/// after it: with the `AssetPlugin` already there it registers at once, otherwise when the app's
+/// plugins are finished (`App::run` does that; a test that calls `App::update` itself calls
+/// `App::finish` first). Part of [`crate::DeformableSqPlugins`].
+#[derive(Default)]
+pub struct DeformableSqScenePlugin;
+
+impl Plugin for DeformableSqScenePlugin {
+    fn build(&self, app: &mut App) {
+        if app.is_plugin_added::<bevy::asset::AssetPlugin>() {
+            register_scene_assets(app);
+        }
+    }
+
+    fn finish(&self, app: &mut App) {
+        if app.is_plugin_added::<bevy::asset::AssetPlugin>() {
+            register_scene_assets(app);
+        } else {
+            warn!(
+                "DeformableSqScenePlugin: no AssetPlugin in this app, so scene files cannot load \
+                 (add DefaultPlugins or AssetPlugin)"
+            );
+        }
+    }
+}
+
+/// The scene asset, its loader and the spawning system, once.
+fn register_scene_assets(app: &mut App) {
+    if app.world().contains_resource::<Assets<DeformableScene>>() {
+        return;
+    }
     app.init_asset::<DeformableScene>()
         .init_asset_loader::<DeformableSceneLoader>()
         .add_systems(PreUpdate, spawn_scenes);
