@@ -7,16 +7,15 @@ use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
 use glam::{DQuat, DVec3};
 
-fn main() {
+fn main() -> AppExit {
     let mut app = App::new();
     app.add_plugins((
         screenshot::default_plugins(),
-        DeformableSqPlugin::default(),
-        DeformableSqDebugPlugin,
+        DeformableSqPlugins::default(),
     ))
     .add_systems(Startup, setup);
     screenshot::maybe_add(&mut app);
-    app.run();
+    app.run()
 }
 
 fn setup(mut commands: Commands) {

@@ -25,7 +25,7 @@ use bevy_deformable_sq::model::fit::{FitOptions, Stage, residuals};
 use bevy_deformable_sq::model::image_fit::ellipsoid_from_points;
 use bevy_deformable_sq::model::joint::JointEnd;
 use bevy_deformable_sq::model::superquadric::{LEAST_EPSILON, MAX_EPSILON};
-use bevy_deformable_sq::plugin::scene::{default_assets_dir, save_scene};
+use bevy_deformable_sq::plugin::scene::save_scene;
 use bevy_deformable_sq::plugin::{FitDriver, Scratch};
 use bevy_deformable_sq::prelude::*;
 use bevy_egui::input::EguiWantsInput;
@@ -83,25 +83,14 @@ struct Orbit {
     distance: f32,
 }
 
-/// The spring the mouse is pulling with: on which model, which entry of its `SpringForces`, the
-/// plane (through the grabbed point, facing the camera) the cursor drags the anchor in, and the
-/// model's scale (see [`Spring::grab`] and [`Spring::pull_towards`]).
-#[derive(Resource, Default)]
-struct Grab {
-    model: Option<Entity>,
-    spring: usize,
-    plane_point: Vec3,
-    scale: f64,
-}
-
-fn main() {
+fn main() -> AppExit {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let scene = args
         .iter()
         .find(|a| a.ends_with(".dsq.ron"))
         .cloned()
         .unwrap_or_else(|| "scenes/sandbox.dsq.ron".into());
-    let mut scenes: Vec<String> = std::fs::read_dir(default_assets_dir().join("scenes"))
+    let mut scenes: Vec<String> = std::fs::read_dir(screenshot::assets_dir().0.join("scenes"))
         .map(|d| {
             d.filter_map(|e| e.ok())
                 .map(|e| format!("scenes/{}", e.file_name().to_string_lossy()))
@@ -117,8 +106,8 @@ fn main() {
         WireframePlugin::default(),
         FrameTimeDiagnosticsPlugin::default(),
         EguiPlugin::default(),
-        DeformableSqPlugin::in_schedule(SimStep),
-        DeformableSqDebugPlugin,
+        DeformableSqPlugins::in_schedule(SimStep),
+        MouseSpringPlugin,
     ))
     .insert_resource(Sandbox {
         scene: scene.clone(),
@@ -154,33 +143,26 @@ fn main() {
         pitch: 0.35,
         distance: 7.0,
     })
-    .init_resource::<Grab>()
     .init_schedule(SimStep)
     .add_systems(Startup, setup)
     .add_systems(
         Update,
         (
-            actions,
-            keys,
-            orbit_camera,
-            drag_spring,
-            place_part,
-            run_simulation,
-            track_residual,
-            apply_display,
-        )
-            .chain(),
+            (actions, keys, orbit_camera, sync_mouse_spring)
+                .chain()
+                .before(MouseSpringSystems),
+            (place_part, run_simulation, track_residual, apply_display)
+                .chain()
+                .after(MouseSpringSystems),
+        ),
     )
     .add_systems(EguiPrimaryContextPass, inspector)
-    .add_observer(grab)
-    .add_observer(pick_joint_end)
-    .add_observer(release)
-    .add_observer(drag_end);
+    .add_observer(pick_joint_end);
     if args.iter().any(|a| a == "--demo-drag") {
-        app.add_systems(Update, demo_drag.before(drag_spring));
+        app.add_systems(Update, demo_drag.before(MouseSpringSystems));
     }
     screenshot::maybe_add(&mut app);
-    app.run();
+    app.run()
 }
 
 fn setup(mut commands: Commands) {
@@ -224,16 +206,18 @@ fn actions(world: &mut World) {
         }
         Action::SaveScene => {
             let s = world.resource::<Sandbox>();
-            let out = default_assets_dir().join(
+            let out = screenshot::assets_dir().0.join(
                 s.scene
                     .replace(".dsq.ron", "_saved.dsq.ron")
                     .replace("_saved_saved", "_saved"),
             );
             match s.root {
-                Some(root) => match save_scene(world, root, &out, &default_assets_dir(), true) {
-                    Ok(()) => format!("saved {}", out.display()),
-                    Err(e) => format!("save failed: {e}"),
-                },
+                Some(root) => {
+                    match save_scene(world, root, &out, &screenshot::assets_dir().0, true) {
+                        Ok(()) => format!("saved {}", out.display()),
+                        Err(e) => format!("save failed: {e}"),
+                    }
+                }
                 None => "no scene to save".into(),
             }
         }
@@ -396,7 +380,7 @@ fn orbit_camera(
     motion: Res<AccumulatedMouseMotion>,
     scroll: Res<AccumulatedMouseScroll>,
     egui: Res<EguiWantsInput>,
-    grab: Res<Grab>,
+    mouse: Res<MouseSpring>,
     sandbox: Res<Sandbox>,
     mut camera: Single<&mut Transform, With<Camera3d>>,
     placed: Query<&SceneInstance, Changed<SceneInstance>>,
@@ -411,7 +395,7 @@ fn orbit_camera(
         orbit.pitch = (-forward.y).asin();
         orbit.yaw = (-forward.x).atan2(-forward.z);
     }
-    if !egui.wants_any_pointer_input() && grab.model.is_none() {
+    if !egui.wants_any_pointer_input() && mouse.model.is_none() {
         let d = motion.delta;
         let shift = keys.pressed(KeyCode::ShiftLeft) || keys.pressed(KeyCode::ShiftRight);
         let pan =
@@ -441,114 +425,16 @@ fn orbit_camera(
         .looking_at(orbit.target, Vec3::Y);
 }
 
-/// Left press on a model: a spring from the grabbed surface point (its nearest node's material
-/// coordinates) to the cursor.
-fn grab(
-    press: On<Pointer<Press>>,
-    mut grab: ResMut<Grab>,
+/// The mouse springs are off while the left button places a part or picks a joint's end; a
+/// grabbed model becomes the selected one.
+fn sync_mouse_spring(
     mut sandbox: ResMut<Sandbox>,
-    mut models: Query<(
-        &FemMesh,
-        &Scratch,
-        &GlobalShape,
-        &ModelSettings,
-        &mut SimControl,
-        Option<&mut SpringForces>,
-    )>,
-    mut commands: Commands,
+    mut settings: ResMut<MouseSpringSettings>,
+    mut grabbed: MessageReader<ModelGrabbed>,
 ) {
-    if press.button != PointerButton::Primary
-        || grab.model.is_some()
-        || sandbox.placing.is_some()
-        || sandbox.joining.is_some()
-    {
-        return;
-    }
-    let entity = press.entity;
-    let Ok((fem, scratch, shape, settings, mut control, springs)) = models.get_mut(entity) else {
-        return;
-    };
-    let (Some(tess), Some(hit)) = (fem.get(), press.hit.position) else {
-        return;
-    };
-    let size = shape.a.max(1e-3);
-    let stiffness = Spring::mouse_stiffness(settings, size);
-    let Some(spring) = Spring::grab(tess, scratch.node_positions(), hit.as_dvec3(), stiffness)
-    else {
-        return;
-    };
-    let index = match springs {
-        Some(mut s) => {
-            s.0.push(spring);
-            s.0.len() - 1
-        }
-        None => {
-            commands.entity(entity).insert(SpringForces(vec![spring]));
-            0
-        }
-    };
-    // A finished fit paused its model: pulling it wakes it, and the user takes over.
-    control.paused = false;
-    commands.entity(entity).remove::<FitDriver>();
-    *grab = Grab {
-        model: Some(entity),
-        spring: index,
-        plane_point: hit,
-        scale: size,
-    };
-    sandbox.selected = Some(entity);
-}
-
-/// Moves the grab spring's anchor with the cursor, in the plane through the grabbed point facing
-/// the camera (clamped by [`Spring::pull_towards`]).
-fn drag_spring(
-    grab: Res<Grab>,
-    window: Single<&Window>,
-    camera: Single<(&Camera, &GlobalTransform)>,
-    mut models: Query<(&FemMesh, &Scratch, &mut SpringForces)>,
-) {
-    let Some(model) = grab.model else { return };
-    let Some(cursor) = window.cursor_position() else {
-        return;
-    };
-    let (camera, cam_tf) = *camera;
-    let Ok(ray) = camera.viewport_to_world(cam_tf, cursor) else {
-        return;
-    };
-    let Some(t) = ray.intersect_plane(grab.plane_point, InfinitePlane3d::new(cam_tf.forward()))
-    else {
-        return;
-    };
-    let target = ray.get_point(t).as_dvec3();
-    let Ok((fem, scratch, mut springs)) = models.get_mut(model) else {
-        return;
-    };
-    let Some(tess) = fem.get() else { return };
-    if let Some(spring) = springs.0.get_mut(grab.spring) {
-        spring.pull_towards(tess, scratch.node_positions(), target, grab.scale);
-    }
-}
-
-/// Releasing the button removes the mouse spring (over a model: `Release`; anywhere after a
-/// drag: `DragEnd`).
-fn release(up: On<Pointer<Release>>, grab: ResMut<Grab>, springs: Query<&mut SpringForces>) {
-    if up.button == PointerButton::Primary {
-        end_grab(grab, springs);
-    }
-}
-
-fn drag_end(end: On<Pointer<DragEnd>>, grab: ResMut<Grab>, springs: Query<&mut SpringForces>) {
-    if end.button == PointerButton::Primary {
-        end_grab(grab, springs);
-    }
-}
-
-fn end_grab(mut grab: ResMut<Grab>, mut springs: Query<&mut SpringForces>) {
-    if let Some(model) = grab.model.take()
-        && let Ok(mut s) = springs.get_mut(model)
-        && grab.spring < s.0.len()
-    {
-        s.0.remove(grab.spring);
+    settings.enabled = sandbox.placing.is_none() && sandbox.joining.is_none();
+    if let Some(g) = grabbed.read().last() {
+        sandbox.selected = Some(g.model);
     }
 }
 
@@ -697,7 +583,7 @@ fn demo_drag(
     mut frame: Local<u32>,
     mut start: Local<Option<(Vec2, DVec3)>>,
     sandbox: Res<Sandbox>,
-    grab: Res<Grab>,
+    mouse: Res<MouseSpring>,
     mut window: Single<(Entity, &mut Window)>,
     camera: Single<(&Camera, &GlobalTransform)>,
     parts: Query<(&Name, &RigidState)>,
@@ -736,7 +622,7 @@ fn demo_drag(
         44 => println!(
             "demo drag: {} grabbed: {}, moved by {:.3} (x {:.3})",
             name,
-            grab.model.is_some(),
+            mouse.model.is_some(),
             (rigid.translation - c0).length(),
             rigid.translation.x - c0.x
         ),

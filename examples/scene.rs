@@ -10,7 +10,7 @@ use bevy_deformable_sq::prelude::*;
 #[derive(Resource)]
 struct ScenePath(String);
 
-fn main() {
+fn main() -> AppExit {
     let scene = std::env::args()
         .skip(1)
         .find(|a| a.ends_with(".dsq.ron"))
@@ -18,13 +18,12 @@ fn main() {
     let mut app = App::new();
     app.add_plugins((
         screenshot::default_plugins(),
-        DeformableSqPlugin::default(),
-        DeformableSqDebugPlugin,
+        DeformableSqPlugins::default(),
     ))
     .insert_resource(ScenePath(scene))
     .add_systems(Startup, setup);
     screenshot::maybe_add(&mut app);
-    app.run();
+    app.run()
 }
 
 fn setup(mut commands: Commands, assets: Res<AssetServer>, scene: Res<ScenePath>) {

@@ -20,8 +20,9 @@ fn chroma(c: [f32; 3]) -> [f32; 3] {
     c.map(|x| x / s)
 }
 
-#[test]
-fn the_sandbox_renders_its_models() {
+/// Whether the renderer is there: a missing one fails the test under `BDSQ_RENDER_TEST=1`, and
+/// skips it otherwise.
+fn renderer_available() -> bool {
     let required = std::env::var("BDSQ_RENDER_TEST").is_ok_and(|v| v == "1");
     let has_xvfb = Command::new("sh")
         .args(["-c", "command -v xvfb-run"])
@@ -30,6 +31,89 @@ fn the_sandbox_renders_its_models() {
     if !has_xvfb {
         assert!(!required, "BDSQ_RENDER_TEST=1 but xvfb-run is missing");
         eprintln!("skipped: no xvfb-run (install xvfb and mesa-vulkan-drivers to run this test)");
+    }
+    has_xvfb
+}
+
+/// The sandbox under Xvfb with `args`, started in `dir`, killed after `seconds`.
+fn sandbox_in(dir: &Path, seconds: u32, args: &[&str]) -> std::process::Output {
+    Command::new("timeout")
+        .arg(seconds.to_string())
+        .args(["xvfb-run", "-a", "-s", "-screen 0 1280x720x24"])
+        .arg(example("sandbox"))
+        .args(args)
+        .current_dir(dir)
+        .env_remove("BEVY_ASSET_ROOT")
+        .env_remove("CARGO_MANIFEST_DIR")
+        .env("WGPU_BACKEND", "vulkan")
+        .output()
+        .expect("run the sandbox")
+}
+
+/// Started from another folder, not through cargo, the sandbox finds the crate's assets, says
+/// where they are, and a scripted run ends by itself.
+#[test]
+fn the_sandbox_started_from_elsewhere_finds_its_assets_and_exits() {
+    if !renderer_available() {
+        return;
+    }
+    let dir = std::env::temp_dir();
+    let out = dir.join(format!("bdsq-elsewhere-{}.png", std::process::id()));
+    let _ = std::fs::remove_file(&out);
+    let path = out.display().to_string();
+    let run = sandbox_in(
+        &dir,
+        180,
+        &[
+            "scenes/egg.dsq.ron",
+            "--screenshot",
+            &path,
+            "--exit-after-steps",
+            "5",
+        ],
+    );
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        run.status.success() && out.exists(),
+        "{}: {stderr}",
+        run.status
+    );
+    assert!(stderr.contains("the crate's assets/"), "{stderr}");
+    let _ = std::fs::remove_file(&out);
+}
+
+/// A scripted run of a scene that does not exist exits with code 2 and a message naming it,
+/// instead of waiting for models that never come.
+#[test]
+fn a_scripted_run_of_a_missing_scene_exits_2_naming_the_file() {
+    if !renderer_available() {
+        return;
+    }
+    let dir = std::env::temp_dir();
+    let path = dir.join("bdsq-nope.png").display().to_string();
+    let run = sandbox_in(
+        &dir,
+        180,
+        &[
+            "scenes/nope.dsq.ron",
+            "--screenshot",
+            &path,
+            "--exit-after-steps",
+            "20",
+        ],
+    );
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(2), "{stderr}");
+    let last = stderr
+        .lines()
+        .rfind(|l| l.starts_with("error: "))
+        .unwrap_or("");
+    assert!(last.contains("nope.dsq.ron"), "{stderr}");
+}
+
+#[test]
+fn the_sandbox_renders_its_models() {
+    if !renderer_available() {
         return;
     }
     let out = std::env::temp_dir().join(format!("bdsq-sandbox-{}.png", std::process::id()));

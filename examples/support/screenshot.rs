@@ -1,13 +1,39 @@
-//! Shared by the examples: `--screenshot FILE [--exit-after-steps N]` runs until every model has
-//! taken N simulation steps (default 300) or come to rest, saves a screenshot of the window and exits — for CI and
-//! for README images. Pipelines compile synchronously in this mode so the frame is never blank.
+//! Shared by the examples: where `assets/` is ([`assets_dir`]), and `--screenshot FILE
+//! [--exit-after-steps N]`, which runs until every model has taken N simulation steps (default
+//! 300) or come to rest, saves a screenshot of the window and exits — for CI and for the docs'
+//! images. Pipelines compile synchronously in this mode so the frame is never blank. A scripted
+//! run ends by itself: a scene that fails to load, or no model to simulate after
+//! [`FRAMES_WITHOUT_MODELS`] frames, exits with code 2 and a one-line message.
 
 use bevy::app::PluginGroupBuilder;
 use bevy::prelude::*;
 use bevy::render::RenderPlugin;
 use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured, save_to_disk};
-use bevy_deformable_sq::prelude::{SimControl, simulation_task_pools};
-use std::path::PathBuf;
+use bevy_deformable_sq::prelude::{SceneInstance, SimControl, simulation_task_pools};
+use std::path::{Path, PathBuf};
+
+/// A scripted run with no model to simulate after this many frames gives up.
+pub const FRAMES_WITHOUT_MODELS: u32 = 600;
+
+/// Where the examples' `assets/` folder is, and why: Bevy's `BEVY_ASSET_ROOT` when set (its
+/// `assets/`), else this crate's own `assets/` (its path known at build time) when it is there,
+/// else `assets/` next to the executable. So an example binary started from anywhere, not only
+/// through cargo, finds the shipped scenes.
+pub fn assets_dir() -> (PathBuf, &'static str) {
+    if let Some(root) = std::env::var_os("BEVY_ASSET_ROOT") {
+        return (PathBuf::from(root).join("assets"), "BEVY_ASSET_ROOT");
+    }
+    let own = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets");
+    if own.is_dir() {
+        return (own, "the crate's assets/, known at build time");
+    }
+    let exe = std::env::current_exe().ok();
+    let dir = exe
+        .as_deref()
+        .and_then(Path::parent)
+        .unwrap_or(Path::new("."));
+    (dir.join("assets"), "next to the executable")
+}
 
 #[derive(Resource)]
 struct Request {
@@ -36,9 +62,15 @@ pub fn args() -> Option<(PathBuf, u64)> {
 /// `DefaultPlugins` with the compute pool on every core ([`simulation_task_pools`]), and with
 /// synchronous pipeline compilation when a screenshot is asked for.
 pub fn default_plugins() -> PluginGroupBuilder {
-    let plugins = DefaultPlugins.build().set(TaskPoolPlugin {
-        task_pool_options: simulation_task_pools(),
-    });
+    let plugins = DefaultPlugins
+        .build()
+        .set(TaskPoolPlugin {
+            task_pool_options: simulation_task_pools(),
+        })
+        .set(AssetPlugin {
+            file_path: assets_dir().0.display().to_string(),
+            ..default()
+        });
     if args().is_some() {
         plugins.set(RenderPlugin {
             synchronous_pipeline_compilation: true,
@@ -49,8 +81,13 @@ pub fn default_plugins() -> PluginGroupBuilder {
     }
 }
 
-/// Adds the screenshot system when `--screenshot` was given.
+/// Logs where the assets are read from, and adds the screenshot system when `--screenshot` was
+/// given.
 pub fn maybe_add(app: &mut App) {
+    app.add_systems(Startup, || {
+        let (dir, why) = assets_dir();
+        info!("assets: {} ({why})", dir.display());
+    });
     if let Some((path, after_steps)) = args() {
         app.insert_resource(Request {
             path,
@@ -62,8 +99,29 @@ pub fn maybe_add(app: &mut App) {
     }
 }
 
-fn take(mut commands: Commands, mut req: ResMut<Request>, models: Query<&SimControl>) {
+fn take(
+    mut commands: Commands,
+    mut req: ResMut<Request>,
+    models: Query<&SimControl>,
+    scenes: Query<&SceneInstance>,
+    mut exit: MessageWriter<AppExit>,
+) {
     req.frames += 1;
+    if req.taken {
+        return;
+    }
+    if let Some(e) = scenes.iter().find_map(|s| s.error.as_deref()) {
+        eprintln!("error: {}", e.lines().next().unwrap_or(e));
+        exit.write(AppExit::from_code(2));
+        req.taken = true;
+        return;
+    }
+    if models.is_empty() && req.frames > FRAMES_WITHOUT_MODELS {
+        eprintln!("error: no model to simulate after {FRAMES_WITHOUT_MODELS} frames");
+        exit.write(AppExit::from_code(2));
+        req.taken = true;
+        return;
+    }
     // Every model has taken its steps, or stopped (a fit at rest pauses its model).
     let ready = !models.is_empty()
         && models
