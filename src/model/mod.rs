@@ -20,6 +20,7 @@ pub mod inertia;
 pub mod init;
 pub mod joint;
 pub mod linalg;
+pub mod lm;
 pub mod noise;
 pub mod parts;
 mod simd;

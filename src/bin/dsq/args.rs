@@ -3,7 +3,7 @@
 //! Where options overlap, the order is fixed, whatever the order on the command line: a
 //! `--paper` experiment's settings first, then `--robust`, then every option given by itself.
 
-use bevy_deformable_sq::model::fit::FitOptions;
+use bevy_deformable_sq::model::fit::{FitOptions, Solver};
 use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
 use bevy_deformable_sq::model::forces::range::InfluenceMode;
 use bevy_deformable_sq::model::image_fit::{ImageFitOptions, doll_experiment, pestle_experiment};
@@ -23,6 +23,15 @@ pub enum Paper {
     Pestle,
     /// The doll image experiment (11 parts), on the shipped horse image.
     Doll,
+}
+
+/// How a pure superquadric's global DOFs come to rest (`--solver`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum SolverArg {
+    /// The paper's explicit dynamics under range springs.
+    Dynamics,
+    /// Levenberg–Marquardt on the radial distance (with --global-only, no --taper or --bend).
+    Lm,
 }
 
 /// The membrane's w1: a number, or `auto` (chosen from the cloud's noise).
@@ -94,6 +103,10 @@ pub struct FitArgs {
     /// w0 = 1e-3, w1 = 0.1) instead of the data-driven defaults.
     #[arg(long, help_heading = "Point clouds")]
     pub paper_forces: bool,
+    /// How a pure superquadric (--global-only) comes to rest: `dynamics` (the default) or
+    /// `lm`, a Levenberg–Marquardt solve in tens of iterations.
+    #[arg(long, value_enum, help_heading = "Point clouds")]
+    pub solver: Option<SolverArg>,
     /// Point-to-plane springs in the global stage.
     #[arg(long, help_heading = "Point clouds")]
     pub plane: bool,
@@ -413,6 +426,18 @@ impl FitArgs {
             }
             // (w0 and w1 act on the local DOFs only.)
             stiffness_from_noise |= !stiffness_given && !o.global_only;
+        }
+        match self.solver {
+            Some(_) if !is_file => {
+                return Err("--solver acts on POINTS fits".into());
+            }
+            Some(SolverArg::Lm)
+                if !o.global_only || o.dynamics.free.taper || o.dynamics.free.bend =>
+            {
+                return Err("--solver lm needs --global-only and no --taper or --bend".into());
+            }
+            Some(SolverArg::Lm) => o.solver = Solver::LevenbergMarquardt,
+            Some(SolverArg::Dynamics) | None => {}
         }
         if self.paper_forces && !is_file {
             return Err(
