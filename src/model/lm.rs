@@ -347,13 +347,22 @@ pub fn fit_radial(
     let mut lambda = INITIAL_DAMPING;
     let mut previous = f64::INFINITY;
     for _ in 0..opts.max_rounds {
-        if robust {
+        let mut cost = if robust {
+            // The weights and the cost they give, from one pass over the distances.
+            let mut cost = 0.0;
             fit.weights = points
                 .iter()
-                .map(|p| mixture.inlier(radial_distance(&fit.pose, *p), fit.sigma2))
+                .map(|p| {
+                    let d = radial_distance(&fit.pose, *p);
+                    let w = mixture.inlier(d, fit.sigma2);
+                    cost += w * d * d;
+                    w
+                })
                 .collect();
-        }
-        let mut cost = radial_cost(&fit.pose, points, &fit.weights);
+            cost
+        } else {
+            radial_cost(&fit.pose, points, &fit.weights)
+        };
         for _ in 0..opts.steps_per_round {
             let Some((pose, c)) = lm_step(&fit.pose, cost, points, &fit.weights, &mut lambda)
             else {
@@ -398,6 +407,28 @@ pub struct Solution {
     pub iterations: u32,
 }
 
+/// [`fit_radial`] from each of `starts` side by side (threads of their own): the fit with the
+/// least finite [`RadialFit::score`], its score and start, and the steps all of them took.
+fn best_fit(
+    points: &[DVec3],
+    starts: &[InitialPose],
+    sigma2: f64,
+    opts: &RadialOptions,
+) -> Option<(RadialFit, f64, InitialPose, u32)> {
+    let run = |start: &InitialPose, _: &mut dyn FnMut(&super::fit::FitProgress)| {
+        let fit = fit_radial(points, start, sigma2, opts);
+        let score = fit.score(points, &opts.mixture);
+        (fit, score)
+    };
+    let runs = super::fit::run_parallel(starts, run, &mut |_| {});
+    let iterations = runs.iter().map(|(f, _)| f.iterations).sum();
+    runs.into_iter()
+        .zip(starts)
+        .filter(|((_, s), _)| s.is_finite())
+        .min_by(|((_, a), _), ((_, b), _)| a.total_cmp(b))
+        .map(|((f, s), start)| (f, s, *start, iterations))
+}
+
 /// The most points the starts and the similarity candidates of [`solve`] are fitted to: a larger
 /// cloud is subsampled for them, and only the kept fit is refined on every point.
 pub const COARSE_POINTS: usize = 512;
@@ -429,44 +460,17 @@ pub fn solve(
 ) -> Option<Solution> {
     let sample = coarse_sample(all_points);
     let points = &sample[..];
-    let run = |start: &InitialPose| {
-        let fit = fit_radial(points, start, sigma2, opts);
-        let score = fit.score(points, &opts.mixture);
-        (fit, score)
-    };
-    let runs = super::fit::run_parallel(starts, |s, _| run(s), &mut |_| {});
-    let mut iterations = runs.iter().map(|(f, _)| f.iterations).sum();
-    let (mut best, mut score, mut start) = runs
-        .into_iter()
-        .zip(starts)
-        .filter(|((_, s), _)| s.is_finite())
-        .min_by(|((_, a), _), ((_, b), _)| a.total_cmp(b))
-        .map(|((f, s), start)| (f, s, *start))?;
+    let (mut best, mut score, mut start, mut iterations) = best_fit(points, starts, sigma2, opts)?;
     for _ in 0..max_switches {
         let others = candidates(&best.pose);
-        let from = best.sigma2;
-        let runs = super::fit::run_parallel(
-            &others,
-            |s, _| {
-                let fit = fit_radial(points, s, from, opts);
-                let score = fit.score(points, &opts.mixture);
-                (fit, score)
-            },
-            &mut |_| {},
-        );
-        iterations += runs.iter().map(|(f, _)| f.iterations).sum::<u32>();
-        let Some(((fit, s), other)) = runs
-            .into_iter()
-            .zip(&others)
-            .filter(|((_, s), _)| s.is_finite())
-            .min_by(|((_, a), _), ((_, b), _)| a.total_cmp(b))
-        else {
+        let Some((fit, s, other, spent)) = best_fit(points, &others, best.sigma2, opts) else {
             break;
         };
+        iterations += spent;
         if s >= score {
             break;
         }
-        (best, score, start) = (fit, s, *other);
+        (best, score, start) = (fit, s, other);
     }
     if points.len() < all_points.len() {
         best = fit_radial(all_points, &best.pose, best.sigma2, opts);
