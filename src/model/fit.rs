@@ -30,7 +30,7 @@ use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces, Robust}
 pub use super::init::Normalization;
 use super::init::{InitialPose, initial_pose};
 pub use super::lm::Solver;
-use super::lm::{Mixture, RadialOptions};
+use super::lm::{LmOptions, Metric, Mixture};
 use super::superquadric::{LEAST_EPSILON, MIN_EPSILON, SuperquadricParams};
 use crate::model::forces::nearest::kd_tree;
 use glam::DVec3;
@@ -1271,7 +1271,7 @@ fn fit_lm(
         .fold(0.0, f64::max);
     let sigma2 = volume.cbrt() * reach / 100.0;
     let diagonal = extent.length();
-    let lm = RadialOptions {
+    let lm = LmOptions {
         mixture: Mixture {
             outlier_ratio: opts.outlier_ratio,
             outlier_density: 1.0 / volume,
@@ -1280,6 +1280,7 @@ fn fit_lm(
         max_rounds: LM_ROUNDS.0,
         steps_per_round: LM_ROUNDS.1,
         tolerance: LM_TOLERANCE,
+        metric: Metric::Radial,
     };
     let switches = if opts.similarity_switch {
         LM_SWITCHES
@@ -1456,11 +1457,17 @@ pub const SURFACE_RESIDUAL_K: usize = 151;
 
 /// The residuals a fit reports for `state` (fitted on `tess`): a model with local displacements is
 /// measured on its own mesh, which is what it renders; a pure superquadric (all displacements
-/// zero) on a [`SURFACE_RESIDUAL_K`] tessellation of its continuous surface, which the refining
-/// stage fits ([`ModelSurface`](super::dynamics::ModelSurface)) and which the 963-node mesh's
-/// chords would misstate by more than a clean fit's distances.
+/// zero) on its continuous surface, which the refining stage fits
+/// ([`ModelSurface`](super::dynamics::ModelSurface)) and which the 963-node mesh's chords would
+/// misstate by more than a clean fit's distances: exactly ([`surface_distances`]) when it is
+/// neither tapered nor bent, else on a [`SURFACE_RESIDUAL_K`] tessellation.
 pub fn fit_residuals(tess: &Tessellation, state: &ModelState, points: &[DVec3]) -> Residuals {
     let pure = state.displacement.iter().all(|d| *d == DVec3::ZERO);
+    if pure && state.deformation.is_identity() {
+        let pose = InitialPose::of(state);
+        let d = surface_distances(&pose, points);
+        return Residuals::of(d, bounding_diagonal(points));
+    }
     let fine;
     let tess = if pure && tess.k < SURFACE_RESIDUAL_K {
         fine = Tessellation::new(SURFACE_RESIDUAL_K);
@@ -1485,6 +1492,22 @@ pub fn fit_residuals(tess: &Tessellation, state: &ModelState, points: &[DVec3]) 
         &mut x,
     );
     residuals(tess, &x, points)
+}
+
+/// |distance| of each of `points` to the closest point of the pure superquadric `pose`
+/// ([`super::distance::surface_distance`]), over every core for large clouds.
+pub fn surface_distances(pose: &InitialPose, points: &[DVec3]) -> Vec<f64> {
+    use rayon::prelude::*;
+    let one = |p: &DVec3| super::distance::surface_distance(pose, *p).abs();
+    if points.len() >= 4 * PARALLEL_DISTANCES {
+        points
+            .par_iter()
+            .with_min_len(PARALLEL_DISTANCES)
+            .map(one)
+            .collect()
+    } else {
+        points.iter().map(one).collect()
+    }
 }
 
 /// Point-to-surface residual statistics relative to the points' bounding-box diagonal, the

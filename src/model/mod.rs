@@ -10,6 +10,7 @@
 
 pub mod deform;
 pub mod descriptor;
+pub mod distance;
 pub mod dynamics;
 pub mod fem;
 pub mod fit;

@@ -30,7 +30,8 @@ pub enum Paper {
 pub enum SolverArg {
     /// The paper's explicit dynamics under range springs.
     Dynamics,
-    /// Levenberg–Marquardt on the radial distance (with --global-only, no --taper or --bend).
+    /// Levenberg–Marquardt on the radial, then the surface distance (with --global-only, no
+    /// --taper or --bend).
     Lm,
 }
 
