@@ -6,8 +6,9 @@
 //! cargo run --release --example ground_truth [-- --clouds N] [--export DIR]
 //! ```
 //!
-//! For each cloud, a global-only fit with the paper's springs and one with `FitOptions::robust`
-//! (`dsq fit`'s `--robust`) are scored by `synthetic::ParameterErrors`: mean relative error
+//! For each cloud, a global-only fit with the paper's springs, one with `FitOptions::robust`
+//! through the dynamics (`dsq fit --robust --solver dynamics`) and one through the
+//! Levenberg–Marquardt solver (`dsq fit --global-only`'s default) are scored by `synthetic::ParameterErrors`: mean relative error
 //! of the semi-axes, mean error of ε1 and ε2, translation error over the largest semi-axis and
 //! the rotation error in degrees (all after matching the axes). Prints a Markdown table and the
 //! medians. `--export DIR` also writes each cloud as `DIR/cloud_N.ply` (ASCII) and its truth as
@@ -15,7 +16,7 @@
 //! 20 clouds (`assets/data/ems/ground_truth_ems.jsonl`, from running EMS on the exported clouds;
 //! see `assets/data/ATTRIBUTION.md`) are scored the same way in the last column.
 
-use bevy_deformable_sq::model::fit::{FitOptions, bounding_diagonal, fit, point_distances};
+use bevy_deformable_sq::model::fit::{FitOptions, Solver, bounding_diagonal, fit, point_distances};
 use bevy_deformable_sq::model::init::InitialPose;
 use bevy_deformable_sq::synthetic::{CloudRecipe, ParameterErrors, ground_truth_cloud};
 use std::io::Write;
@@ -90,10 +91,11 @@ fn main() -> ExitCode {
         }
     };
     println!(
-        "| cloud | ε1, ε2 (truth) | ours, global only: axes / ε / translation / rotation | ours, `--robust` | EMS |"
+        "| cloud | ε1, ε2 (truth) | ours, global only: axes / ε / translation / rotation | ours, `--robust`, dynamics | ours, `--robust`, Levenberg–Marquardt | EMS |"
     );
-    println!("|---|---|---|---|---|");
-    let (mut plain, mut robust, mut theirs) = (Vec::new(), Vec::new(), Vec::new());
+    println!("|---|---|---|---|---|---|");
+    let (mut plain, mut robust, mut solved, mut theirs) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut local_rows, mut local) = (Vec::new(), Vec::new());
     let mut truths = String::new();
     for seed in 1..=clouds {
@@ -138,15 +140,20 @@ fn main() -> ExitCode {
         let (defaults, _) = FitOptions::default()
             .for_data()
             .with_stiffness_from_noise(&c.points);
-        let runs = [global, global.robust(), FitOptions::default(), defaults].map(score);
+        let lm = FitOptions {
+            solver: Solver::LevenbergMarquardt,
+            ..global.robust()
+        };
+        let runs = [global, global.robust(), lm, FitOptions::default(), defaults].map(score);
         let [
             (p, _, _),
             (r, pure, _),
+            (l, _, _),
             (_, paper_local, paper_steps),
             (_, ours_local, ours_steps),
-        ] = match runs {
-            [Ok(a), Ok(b), Ok(c), Ok(d)] => [a, b, c, d],
-            [Err(e), ..] | [_, Err(e), ..] | [_, _, Err(e), _] | [.., Err(e)] => {
+        ] = match runs.into_iter().collect::<Result<Vec<_>, _>>() {
+            Ok(v) => [v[0], v[1], v[2], v[3], v[4]],
+            Err(e) => {
                 eprintln!("cloud {seed}: {e}");
                 return ExitCode::from(2);
             }
@@ -162,15 +169,17 @@ fn main() -> ExitCode {
             .find(|f| f.cloud == name)
             .map(|f| ParameterErrors::of(t, &f.pose()));
         println!(
-            "| {seed} | {:.2}, {:.2} | {} | {} | {} |",
+            "| {seed} | {:.2}, {:.2} | {} | {} | {} | {} |",
             t.shape.e1,
             t.shape.e2,
             cell(&p),
             cell(&r),
+            cell(&l),
             ems.as_ref().map_or("–".into(), cell)
         );
         plain.push(p);
         robust.push(r);
+        solved.push(l);
         theirs.extend(ems);
     }
     let medians = |v: &[ParameterErrors]| ParameterErrors {
@@ -180,9 +189,10 @@ fn main() -> ExitCode {
         rotation_deg: median(v.iter().map(|e| e.rotation_deg).collect()),
     };
     println!(
-        "| median | | {} | {} | {} |",
+        "| median | | {} | {} | {} | {} |",
         cell(&medians(&plain)),
         cell(&medians(&robust)),
+        cell(&medians(&solved)),
         cell(&medians(&theirs))
     );
     println!();

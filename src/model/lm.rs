@@ -392,26 +392,49 @@ pub struct Solution {
     pub iterations: u32,
 }
 
-/// [`fit_em`] from each of `starts` side by side (threads of their own): the fit with the
-/// least finite [`LmFit::score`], its score and start, and the steps all of them took.
+/// EM rounds each start and similarity candidate of [`solve`] gets before they are compared;
+/// only the one that scores least is run on to rest (EMS's rule, in place of running every one to
+/// rest).
+pub const PROBE_ROUNDS: u32 = 3;
+
+/// [`fit_em`] for [`PROBE_ROUNDS`] from each of `starts` side by side (threads of their own),
+/// then the one with the least finite [`LmFit::score`] on to rest: that fit, its score and start,
+/// and the steps all of them took.
 fn best_fit(
     points: &[DVec3],
     starts: &[InitialPose],
     sigma2: f64,
     opts: &LmOptions,
 ) -> Option<(LmFit, f64, InitialPose, u32)> {
+    let probe = LmOptions {
+        max_rounds: PROBE_ROUNDS.min(opts.max_rounds),
+        ..*opts
+    };
     let run = |start: &InitialPose, _: &mut dyn FnMut(&super::fit::FitProgress)| {
-        let fit = fit_em(points, start, sigma2, opts);
+        let fit = fit_em(points, start, sigma2, &probe);
         let score = fit.score(points, &opts.mixture);
         (fit, score)
     };
     let runs = super::fit::run_parallel(starts, run, &mut |_| {});
-    let iterations = runs.iter().map(|(f, _)| f.iterations).sum();
-    runs.into_iter()
+    let mut iterations = runs.iter().map(|(f, _)| f.iterations).sum();
+    let ((mut fit, mut score), start) = runs
+        .into_iter()
         .zip(starts)
         .filter(|((_, s), _)| s.is_finite())
-        .min_by(|((_, a), _), ((_, b), _)| a.total_cmp(b))
-        .map(|((f, s), start)| (f, s, *start, iterations))
+        .min_by(|((_, a), _), ((_, b), _)| a.total_cmp(b))?;
+    if !fit.converged && opts.max_rounds > probe.max_rounds {
+        let rest = LmOptions {
+            max_rounds: opts.max_rounds - probe.max_rounds,
+            ..*opts
+        };
+        fit = LmFit {
+            iterations: 0,
+            ..fit_em(points, &fit.pose, fit.sigma2, &rest)
+        };
+        iterations += fit.iterations;
+        score = fit.score(points, &opts.mixture);
+    }
+    Some((fit, score, *start, iterations))
 }
 
 /// The most points the starts and the similarity candidates of [`solve`] are fitted to: a larger
