@@ -456,8 +456,10 @@ pub fn validate_points(points: &[DVec3]) -> Result<(), FitError> {
             found: points.len(),
         });
     }
+    // Coincident to rounding: the spread is below 10⁻¹² of the distance from the origin (a
+    // cloud of any scale about the origin is fine).
     let n = Normalization::of(points);
-    if !(n.scale > 1e-12 * (1.0 + n.centroid.abs().max_element())) {
+    if !(n.scale > 1e-12 * n.centroid.abs().max_element()) || !(n.scale > 0.0) {
         return Err(FitError::Degenerate);
     }
     Ok(())
@@ -827,7 +829,19 @@ fn dual_about_z(pose: &InitialPose, scale: f64) -> InitialPose {
 /// explicit pose.
 pub fn initial_hypotheses(points: &[DVec3], opts: &FitOptions) -> Vec<InitialPose> {
     match opts.init {
-        Initialization::Moments => axis_hypotheses(&initial_pose(points)).to_vec(),
+        Initialization::Moments => {
+            // The moments are taken in the unit frame: squared coordinates of a cloud at 1e300
+            // would overflow.
+            let norm = Normalization::of(points);
+            if !(norm.scale > 0.0) {
+                return axis_hypotheses(&initial_pose(points)).to_vec();
+            }
+            let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
+            axis_hypotheses(&initial_pose(&unit))
+                .iter()
+                .map(|h| norm.pose_from_unit(h))
+                .collect()
+        }
         Initialization::Explicit(pose) => vec![pose],
     }
 }
@@ -1462,6 +1476,20 @@ pub const SURFACE_RESIDUAL_K: usize = 151;
 /// misstate by more than a clean fit's distances: exactly ([`surface_distances`]) when it is
 /// neither tapered nor bent, else on a [`SURFACE_RESIDUAL_K`] tessellation.
 pub fn fit_residuals(tess: &Tessellation, state: &ModelState, points: &[DVec3]) -> Residuals {
+    // Measured in the points' unit frame, so that no squared distance overflows at any scale;
+    // the figures are relative to the diagonal, so only it is scaled back.
+    let norm = Normalization::of(points);
+    if !(norm.scale > 0.0) {
+        return Residuals::of(Vec::new(), 0.0);
+    }
+    let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
+    let mut r = unit_residuals(tess, &norm.state_to_unit(state), &unit);
+    r.diagonal *= norm.scale;
+    r
+}
+
+/// [`fit_residuals`] in the unit frame.
+fn unit_residuals(tess: &Tessellation, state: &ModelState, points: &[DVec3]) -> Residuals {
     let pure = state.displacement.iter().all(|d| *d == DVec3::ZERO);
     if pure && state.deformation.is_identity() {
         let pose = InitialPose::of(state);
@@ -1529,7 +1557,14 @@ pub fn bounding_diagonal(points: &[DVec3]) -> f64 {
         .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), p| {
             (lo.min(*p), hi.max(*p))
         });
-    (hi - lo).length()
+    // hi − lo may pass f64's largest: halve before subtracting, divide before squaring.
+    let e = hi * 0.5 - lo * 0.5;
+    let m = e.abs().max_element();
+    if m > 0.0 {
+        2.0 * m * (e / m).length()
+    } else {
+        0.0
+    }
 }
 
 impl Residuals {

@@ -127,16 +127,57 @@ pub struct Normalization {
 }
 
 impl Normalization {
-    /// The normalisation of `points`.
+    /// The normalisation of `points`. Nothing is squared or summed before it is divided by the
+    /// largest coordinate, so any finite cloud (coordinates up to f64's largest, or subnormal)
+    /// gets a finite centroid and scale; the scale is 0 only when every point is the same.
     pub fn of(points: &[DVec3]) -> Self {
-        let centroid = moments(points).centroid;
-        let scale = (points
-            .iter()
-            .map(|p| p.distance_squared(centroid))
-            .sum::<f64>()
-            / points.len().max(1) as f64)
-            .sqrt();
+        let n = points.len().max(1) as f64;
+        let reach = |ps: &mut dyn Iterator<Item = DVec3>| {
+            ps.map(|p| p.abs().max_element()).fold(0.0, f64::max)
+        };
+        let m = reach(&mut points.iter().copied());
+        if !(m > 0.0 && m.is_finite()) {
+            return Self {
+                centroid: DVec3::ZERO,
+                scale: 0.0,
+            };
+        }
+        let centroid = points.iter().map(|p| *p / m).sum::<DVec3>() / n * m;
+        let r = reach(&mut points.iter().map(|p| *p - centroid));
+        let scale = if r > 0.0 && r.is_finite() {
+            r * (points
+                .iter()
+                .map(|p| ((*p - centroid) / r).length_squared())
+                .sum::<f64>()
+                / n)
+                .sqrt()
+        } else {
+            0.0
+        };
         Self { centroid, scale }
+    }
+
+    /// Maps a pose from the unit frame to data units (the inverse of [`Self::pose_to_unit`]).
+    pub fn pose_from_unit(&self, pose: &InitialPose) -> InitialPose {
+        let mut shape = pose.shape;
+        shape.a *= self.scale;
+        InitialPose {
+            translation: self.centroid + pose.translation * self.scale,
+            rotation: pose.rotation,
+            shape,
+        }
+    }
+
+    /// Maps a state from data units to the unit frame (the inverse of [`Self::state_to_data`]).
+    pub fn state_to_unit(&self, s: &ModelState) -> ModelState {
+        let pose = self.pose_to_unit(&InitialPose::of(s));
+        ModelState {
+            translation: pose.translation,
+            rotation: pose.rotation,
+            shape: pose.shape,
+            deformation: s.deformation,
+            displacement: s.displacement.iter().map(|d| *d / self.scale).collect(),
+        }
     }
     /// Maps a point from data units to the unit frame.
     pub fn unit_point(&self, p: DVec3) -> DVec3 {
@@ -161,12 +202,11 @@ impl Normalization {
 
     /// Maps a state from the unit frame back to data units.
     pub fn state_to_data(&self, s: &ModelState) -> ModelState {
-        let mut shape = s.shape;
-        shape.a *= self.scale;
+        let pose = self.pose_from_unit(&InitialPose::of(s));
         ModelState {
-            translation: self.centroid + s.translation * self.scale,
-            rotation: s.rotation,
-            shape,
+            translation: pose.translation,
+            rotation: pose.rotation,
+            shape: pose.shape,
             // Tapering and bending are dimensionless: the same at any scale.
             deformation: s.deformation,
             displacement: s.displacement.iter().map(|d| *d * self.scale).collect(),

@@ -50,10 +50,15 @@ pub fn estimate_noise(points: &[DVec3]) -> Option<NoiseEstimate> {
     if points.len() < k || !points.iter().all(|p| p.is_finite()) {
         return None;
     }
-    let scale = Normalization::of(points).scale;
+    let norm = Normalization::of(points);
+    let scale = norm.scale;
     if !(scale > 0.0) {
         return None;
     }
+    // Measured in the unit frame (squared distances of a cloud at 1e300 would overflow), then
+    // scaled back.
+    let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
+    let points = &unit[..];
     let tree = kd_tree(points)?;
     let stride = points.len().div_ceil(NOISE_SAMPLES).max(1);
     let mut variances: Vec<f64> = points
@@ -78,10 +83,10 @@ pub fn estimate_noise(points: &[DVec3]) -> Option<NoiseEstimate> {
     // Median of χ²(ν)/ν by Wilson–Hilferty, ν = k − 6.
     let nu = (k - 6) as f64;
     let chi_median = (1.0 - 2.0 / (9.0 * nu)).powi(3);
-    let sigma = (median / chi_median).sqrt();
+    let relative = (median / chi_median).sqrt();
     Some(NoiseEstimate {
-        sigma,
-        relative: sigma / scale,
+        sigma: relative * scale,
+        relative,
     })
 }
 
