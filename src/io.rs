@@ -158,13 +158,41 @@ fn load_obj(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
     Ok(points)
 }
 
+/// The PLY parser's error in one short line: its first sentence ("Line 9: Couldn't read element
+/// line.") and the offending text, cut to 60 printable characters, without the parser's internals.
+fn ply_message(raw: &str) -> String {
+    let first = raw
+        .lines()
+        .next()
+        .unwrap_or(raw)
+        .trim()
+        .trim_end_matches('.');
+    let quoted = raw
+        .split_once("String: '")
+        .map(|(_, rest)| rest.split('\'').next().unwrap_or(rest))
+        .map(|text| {
+            let clean: String = text
+                .trim()
+                .chars()
+                .map(|c| if c.is_control() { ' ' } else { c })
+                .take(60)
+                .collect();
+            format!(" (`{clean}`)")
+        })
+        .unwrap_or_default();
+    match first.strip_prefix("Line ") {
+        Some(rest) => format!("PLY line {rest}{quoted}"),
+        None => format!("PLY parse error: {first}{quoted}"),
+    }
+}
+
 fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
     use ply_rs_bw::parser::Parser;
     use ply_rs_bw::ply::{DefaultElement, Property};
     let parser = Parser::<DefaultElement>::new();
     let ply = parser
         .read_ply(&mut std::io::Cursor::new(bytes))
-        .map_err(|e| err(path, format!("PLY parse error: {e}")))?;
+        .map_err(|e| err(path, ply_message(&e.to_string())))?;
     let Some(vertices) = ply.payload.get("vertex") else {
         return Err(err(path, "has no `vertex` element"));
     };
@@ -440,6 +468,33 @@ mod tests {
             e.message.contains("line 2") && e.message.contains("NaN"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn ply_errors_are_one_short_line_naming_the_line() {
+        let header = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n";
+        let bad_value = temp(
+            "value.ply",
+            format!("{header}1 2 3\n4 5 abc\n7 8 9\n").as_bytes(),
+        );
+        let bad_type = temp("type.ply", header.replace("float y", "floot y").as_bytes());
+        let binary = header.replace("ascii", "binary_little_endian") + "abcdefgh";
+        let short = temp("short.ply", binary.as_bytes());
+        for (p, line, text) in [
+            (bad_value, "line 9", "`4 5 abc`"),
+            (bad_type, "line 5", "`property floot y`"),
+            (short, "line 8", "end of file"),
+        ] {
+            let e = load_points(&p).unwrap_err();
+            let m = e.to_string();
+            assert!(
+                m.contains(p.file_name().unwrap().to_str().unwrap())
+                    && m.contains(line)
+                    && m.contains(text),
+                "{m}"
+            );
+            assert!(!m.contains('\n') && m.len() < 200, "{m}");
+        }
     }
 
     #[test]
