@@ -42,7 +42,9 @@ use super::dynamics::{DynamicsParams, FreeDofs, ModelState, NodalForces, StepErr
 use super::fem::{GridPowers, Tessellation};
 use super::frame::rotation_matrix;
 use super::linalg::cholesky_solve;
-use super::superquadric::{MAX_EPSILON, MIN_ASPECT, SuperquadricParams, epsilon_floor};
+use super::superquadric::{
+    MAX_EPSILON, MIN_ASPECT, MIN_EPSILON, SuperquadricParams, epsilon_floor,
+};
 use glam::{DMat3, DQuat, DVec3};
 
 /// Number of global velocity coordinates: ċ (3), Ω (3), Ȧ (3), ε̇ (2), q̇_T (4).
@@ -310,6 +312,12 @@ struct AccelerationBuffers {
     cols: Vec<[DVec3; NUM_GLOBAL_VELOCITY]>,
     /// The local accelerations d̈_i.
     d_acc: Vec<DVec3>,
+    /// When set, the next [`accelerations_in`] also gathers the springs' stiffness on the
+    /// global coordinates and leaves in `global_rate` the bound on their ω² (see
+    /// [`global_rate_bound`]); cleared by that call.
+    rate_wanted: bool,
+    /// ω² bound of the global modes from the last call that wanted it.
+    global_rate: f64,
 }
 
 impl InertiaWorkspace {
@@ -347,7 +355,11 @@ fn accelerations_in(
         local_rhs,
         cols: cols_store,
         d_acc,
+        rate_wanted,
+        global_rate,
     } = buffers;
+    let want_rate = std::mem::take(rate_wanted);
+    let mut k_mat = [[0.0; NUM_GLOBAL_VELOCITY]; NUM_GLOBAL_VELOCITY];
     kd.clear();
     kd.resize(n, DVec3::ZERO);
     if local {
@@ -390,6 +402,15 @@ fn accelerations_in(
                 s_mat[x][y] += w * cols[x].dot(cols[y]);
             }
         }
+        // The springs' stiffness on the global coordinates, as the right-hand side feels it.
+        let kappa = (1.0 - rho) * forces.stiffness[i] + forces.shape_stiffness[i];
+        if want_rate && kappa > 0.0 {
+            for x in 0..NUM_GLOBAL_VELOCITY {
+                for y in x..NUM_GLOBAL_VELOCITY {
+                    k_mat[x][y] += kappa * cols[x].dot(cols[y]);
+                }
+            }
+        }
         if local {
             local_rhs[i] = (rt * (f - m * a) - kd[i]) / (m * (1.0 + lambda));
         }
@@ -424,8 +445,26 @@ fn accelerations_in(
     if !rhs.iter().all(|x| x.is_finite()) {
         return Err(StepError::NonFinite("generalized force f_q"));
     }
-    let global =
-        cholesky_solve(&s_mat, &rhs).ok_or(StepError::NonFinite("mass matrix M (Schur block)"))?;
+    if want_rate {
+        *global_rate = global_rate_bound(&s_mat, k_mat, &free);
+    }
+    let singular = StepError::NonFinite("mass matrix M (Schur block)");
+    let mut global = cholesky_solve(&s_mat, &rhs).ok_or(singular.clone())?;
+    // A coordinate at its bound that the solve pushes through it is held there, and the rest
+    // solved again: clipped after the fact (`advance`), its share of the coupled motion would
+    // go to the coordinates it is coupled with through M, and pump them without bound.
+    let pushed = pushed_at_bounds(state, v, &global);
+    if pushed.iter().any(|&p| p) {
+        for x in (0..NUM_GLOBAL_VELOCITY).filter(|&x| pushed[x]) {
+            for y in 0..NUM_GLOBAL_VELOCITY {
+                s_mat[x][y] = 0.0;
+                s_mat[y][x] = 0.0;
+            }
+            s_mat[x][x] = 1.0;
+            rhs[x] = 0.0;
+        }
+        global = cholesky_solve(&s_mat, &rhs).ok_or(singular)?;
+    }
     d_acc.clear();
     d_acc.resize(n, DVec3::ZERO);
     if local {
@@ -438,6 +477,69 @@ fn accelerations_in(
         }
     }
     Ok(global)
+}
+
+/// The coordinates at a bound of `advance` that are not moving away from it and that the
+/// accelerations `acc` would push through it: semi-axes at [`MIN_ASPECT`] of the largest,
+/// exponents at [`MAX_EPSILON`] or at or below [`MIN_EPSILON`] (where a step may not lower
+/// them), and tapering and bending at the bounds of [`GlobalDeformation::clamped`].
+fn pushed_at_bounds(
+    state: &ModelState,
+    v: &Velocity,
+    acc: &[f64; NUM_GLOBAL_VELOCITY],
+) -> [bool; NUM_GLOBAL_VELOCITY] {
+    let shape = &state.shape;
+    let mut out = [false; NUM_GLOBAL_VELOCITY];
+    let axes = shape.semi_axes().to_array();
+    let min_axis = MIN_ASPECT * shape.a * (1.0 + 1e-9);
+    for k in 0..3 {
+        out[6 + k] = axes[k] <= min_axis && v.axes[k] <= 0.0 && acc[6 + k] < 0.0;
+    }
+    for (k, e) in [shape.e1, shape.e2].into_iter().enumerate() {
+        let (rate, a) = (v.epsilon[k], acc[9 + k]);
+        out[9 + k] = (e >= MAX_EPSILON && rate >= 0.0 && a > 0.0)
+            || (e <= MIN_EPSILON && rate <= 0.0 && a < 0.0);
+    }
+    let q = state.deformation.to_array();
+    for k in 0..4 {
+        let a = acc[11 + k];
+        if a == 0.0 || v.deformation[k] * a < 0.0 {
+            continue;
+        }
+        let mut moved = q;
+        moved[k] += 1e-9 * (1.0 + q[k].abs()) * a.signum();
+        let kept = GlobalDeformation::from_array(moved).clamped(shape.semi_axes());
+        out[11 + k] = kept.to_array()[k] != moved[k];
+    }
+    out
+}
+
+/// An upper bound on ω² of the global modes: the largest eigenvalue of S⁻¹ K_g, with S the
+/// global coordinates' mass and K_g = Σ κ_i L_g,iᵀ L_g,i the springs' stiffness on them (upper
+/// triangle), bounded by its trace Σ_j (S⁻¹ K_g)_jj, since every eigenvalue is ≥ 0. A spring
+/// on one node may move a coordinate whose share of the mass is small (an exponent, a semi-axis
+/// at the node's end), so the whole model's mass alone misjudges it. ∞ when S is not positive
+/// definite, so that the step then takes its most sub-steps.
+fn global_rate_bound(
+    s_mat: &[[f64; NUM_GLOBAL_VELOCITY]; NUM_GLOBAL_VELOCITY],
+    mut k_mat: [[f64; NUM_GLOBAL_VELOCITY]; NUM_GLOBAL_VELOCITY],
+    free: &[bool; NUM_GLOBAL_VELOCITY],
+) -> f64 {
+    for x in 0..NUM_GLOBAL_VELOCITY {
+        for y in 0..x {
+            k_mat[x][y] = k_mat[y][x];
+        }
+    }
+    let mut trace = 0.0;
+    for j in (0..NUM_GLOBAL_VELOCITY).filter(|&j| free[j] && k_mat[j][j] > 0.0) {
+        let column: [f64; NUM_GLOBAL_VELOCITY] =
+            std::array::from_fn(|x| if free[x] { k_mat[x][j] } else { 0.0 });
+        match cholesky_solve(s_mat, &column) {
+            Some(z) => trace += z[j].max(0.0),
+            None => return f64::INFINITY,
+        }
+    }
+    trace
 }
 
 /// The kinetic energy T = ½ Σ m_i |ẋ_i|² + ½ Σ λ m_i |ḋ_i|² of `state` moving at `v`.
@@ -489,14 +591,16 @@ fn for_each_node_velocity(
 
 /// The stability bound on h of the explicit step: 2 / ω_max, with ω_max² the larger of the
 /// local bound — Gershgorin's on the membrane and the node's springs over its lightest effective
-/// mass m λ / (1 + λ) — and the global one, four times all the springs over the model's mass
-/// (the factor covers the lever arm of a turn).
+/// mass m λ / (1 + λ) — and the global one: the larger of four times all the springs over the
+/// model's mass (the factor covers the lever arm of a turn) and `global_rate`, the bound of
+/// [`global_rate_bound`] on the global modes.
 fn critical_step(
     ws: &mut InertiaWorkspace,
     tess: &Tessellation,
     forces: &NodalForces,
     params: &DynamicsParams,
     inertia: &InertiaParams,
+    global_rate: f64,
 ) -> f64 {
     let local = if params.free.local {
         let rows = ws.row_bounds(tess, params.w0, params.w1);
@@ -513,7 +617,7 @@ fn critical_step(
     let mass = inertia.mass_density * tess.area;
     let springs: f64 =
         forces.stiffness.iter().sum::<f64>() + forces.shape_stiffness.iter().sum::<f64>();
-    let omega2 = local.max(4.0 * springs / mass);
+    let omega2 = local.max(4.0 * springs / mass).max(global_rate);
     if omega2 > 0.0 {
         2.0 / omega2.sqrt()
     } else {
@@ -543,7 +647,28 @@ pub fn step(
             "inertia parameters: μ and λ must be > 0 and β ≥ 0",
         ));
     }
-    let dt_critical = critical_step(ws, tess, forces, params, inertia);
+    state.node_positions(tess, &mut ws.origin);
+    let mut new_state = state.clone();
+    let mut new_v = v.clone();
+    new_v.local.resize(n, DVec3::ZERO);
+    // A coordinate held since the last step (its DOF switched off) keeps no rate: it stays put.
+    let free = free_global(&params.free);
+    let mut g = new_v.global();
+    for (x, rate) in g.iter_mut().enumerate() {
+        if !free[x] {
+            *rate = 0.0;
+        }
+    }
+    new_v.set_global(&g);
+    let accelerations =
+        |acc: &mut AccelerationBuffers, at: &ModelState, v: &Velocity, x0: &[DVec3]| {
+            accelerations_in(acc, tess, at, v, forces, params, inertia, Some(x0))
+        };
+    // The first sub-step's accelerations, which also bound the global modes' rate.
+    ws.acc.rate_wanted = true;
+    let first = accelerations(&mut ws.acc, &new_state, &new_v, &ws.origin)?;
+    let global_rate = ws.acc.global_rate;
+    let dt_critical = critical_step(ws, tess, forces, params, inertia, global_rate);
     // A quarter of the bound (ω h ≤ ½): symplectic Euler is stable to ω h < 2, but its energy
     // wobbles by O(ω h), and a stiff spring should not pump a visible swing.
     let safe = 0.25 * dt_critical;
@@ -559,21 +684,12 @@ pub fn step(
         h = safe;
         clamped = true;
     }
-    state.node_positions(tess, &mut ws.origin);
-    let mut new_state = state.clone();
-    let mut new_v = v.clone();
-    new_v.local.resize(n, DVec3::ZERO);
-    for _ in 0..substeps {
-        let g_acc = accelerations_in(
-            &mut ws.acc,
-            tess,
-            &new_state,
-            &new_v,
-            forces,
-            params,
-            inertia,
-            Some(&ws.origin),
-        )?;
+    for sub in 0..substeps {
+        let g_acc = if sub == 0 {
+            first
+        } else {
+            accelerations(&mut ws.acc, &new_state, &new_v, &ws.origin)?
+        };
         let decay = 1.0 / (1.0 + h * inertia.damping);
         let mut g = new_v.global();
         for x in 0..NUM_GLOBAL_VELOCITY {
@@ -632,9 +748,10 @@ fn advance(state: &mut ModelState, v: &mut Velocity, h: f64) {
     }
     state.shape = SuperquadricParams {
         a,
-        a1: axes[0] / a,
-        a2: axes[1] / a,
-        a3: axes[2] / a,
+        // Clamped again: (MIN_ASPECT a) / a may round below MIN_ASPECT.
+        a1: (axes[0] / a).clamp(MIN_ASPECT, 1.0),
+        a2: (axes[1] / a).clamp(MIN_ASPECT, 1.0),
+        a3: (axes[2] / a).clamp(MIN_ASPECT, 1.0),
         e1: e[0],
         e2: e[1],
     };
