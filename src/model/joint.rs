@@ -8,8 +8,12 @@
 //! Each step λ ← λ + η κ g, so at equilibrium g = 0 exactly and λ is the force the joint
 //! transmits, whatever else pulls on the parts; while the parts move, κ g closes the gap.
 //!
-//! The force acts on the global coordinates only (it is added as a `shape_force`): a joint holds
-//! the parts together as superquadrics and does not raise a spike in either membrane. Each model
+//! On a model of the first-order dynamics the force acts on the global coordinates only
+//! ([`JointLoad::Global`], a `shape_force`): a joint holds the parts together as superquadrics
+//! and does not raise a spike in either membrane. On a model with mass it acts on the end's
+//! nodes ([`JointLoad::Nodal`]): with inertia a force on the global coordinates alone is taken
+//! up by the membrane's own inertia, which moves the nodes back as the frame moves on, so the
+//! gap never closes and the model runs away while its membrane stretches behind. Each model
 //! is stepped on its own with the other held, so each weighs the joint as a spring of 2κ to the
 //! gap's midpoint (2κ in its global damping weight, and in the springs the second-order step
 //! linearises): each closes half the gap, and the pair closes it without overshooting. With the
@@ -17,7 +21,7 @@
 //! the joint weighs against the parts' data, not the step's stability.
 
 use super::dynamics::NodalForces;
-use super::fem::Tessellation;
+use super::fem::{ElementPoint, Tessellation};
 use glam::DVec3;
 
 /// The multiplier's step η for the first-order dynamics: λ gains η κ g per step.
@@ -29,6 +33,22 @@ pub const MULTIPLIER_RATE: f64 = 0.2;
 /// and 0 (a plain stabilising spring) without damping.
 pub fn inertial_multiplier_rate(damping: f64, dt: f64) -> f64 {
     (0.5 * damping * dt).clamp(0.0, MULTIPLIER_RATE)
+}
+
+/// How a joint's force enters one model's equations (module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum JointLoad {
+    /// On the global coordinates only: for the first-order dynamics.
+    Global,
+    /// On the end's nodes, global and local coordinates both: for a model with mass.
+    Nodal,
+}
+
+impl JointLoad {
+    /// [`JointLoad::Nodal`] for a model with mass, else [`JointLoad::Global`].
+    pub fn for_model(with_mass: bool) -> Self {
+        if with_mass { Self::Nodal } else { Self::Global }
+    }
 }
 
 /// A point on a model's surface by its material coordinates.
@@ -89,13 +109,13 @@ impl Joint {
 
     /// One step's constraint forces: updates λ by `rate` × κ g from the gap g = x_b − x_a
     /// ([`MULTIPLIER_RATE`], or [`inertial_multiplier_rate`] when a model has mass), then adds
-    /// F = λ + κ g at a's end and −F at b's (global coordinates only) to the two models' forces.
-    /// Returns g. A non-finite gap adds nothing and leaves λ alone.
+    /// F = λ + κ g at a's end and −F at b's to the two models' forces, each as its
+    /// [`JointLoad`] says. Returns g. A non-finite gap adds nothing and leaves λ alone.
     pub fn apply(
         &mut self,
         rate: f64,
-        (tess_a, x_a, forces_a): (&Tessellation, &[DVec3], &mut NodalForces),
-        (tess_b, x_b, forces_b): (&Tessellation, &[DVec3], &mut NodalForces),
+        (tess_a, x_a, forces_a, load_a): (&Tessellation, &[DVec3], &mut NodalForces, JointLoad),
+        (tess_b, x_b, forces_b, load_b): (&Tessellation, &[DVec3], &mut NodalForces, JointLoad),
     ) -> DVec3 {
         let (at_a, at_b) = (
             tess_a.locate(self.a.u, self.a.v),
@@ -110,27 +130,19 @@ impl Joint {
         // Each model is stepped on its own, with the other held where it is: weighed as 2κ (a
         // spring of 2κ to the gap's midpoint), each closes half the gap, and together they close
         // it without overshooting (with κ each would close all of it, and the pair would swing).
-        add_global(
-            forces_a,
-            &at_a.nodes,
-            &at_a.weights,
-            force,
-            2.0 * self.stiffness,
-        );
-        add_global(
-            forces_b,
-            &at_b.nodes,
-            &at_b.weights,
-            -force,
-            2.0 * self.stiffness,
-        );
+        add(forces_a, &at_a, force, 2.0 * self.stiffness, load_a);
+        add(forces_b, &at_b, -force, 2.0 * self.stiffness, load_b);
         gap
     }
 }
 
-/// Spreads a force acting on the global coordinates only over an element's nodes (eq. 22).
-fn add_global(out: &mut NodalForces, nodes: &[u32; 4], weights: &[f64; 4], f: DVec3, kappa: f64) {
-    for (n, w) in nodes.iter().zip(weights) {
+/// Spreads a force over an element's nodes (eq. 22), on the coordinates `load` names.
+fn add(out: &mut NodalForces, at: &ElementPoint, f: DVec3, kappa: f64, load: JointLoad) {
+    if load == JointLoad::Nodal {
+        out.add(at, f, kappa);
+        return;
+    }
+    for (n, w) in at.nodes.iter().zip(&at.weights) {
         if *w != 0.0 {
             out.shape_force[*n as usize] += *w * f;
             out.shape_stiffness[*n as usize] += *w * kappa;
@@ -256,7 +268,12 @@ mod tests {
                 }
                 if jointed {
                     let [fa, fb] = &mut forces;
-                    gap = joint.apply(MULTIPLIER_RATE, (&tess, &x[0], fa), (&tess, &x[1], fb));
+                    let g = JointLoad::Global;
+                    gap = joint.apply(
+                        MULTIPLIER_RATE,
+                        (&tess, &x[0], fa, g),
+                        (&tess, &x[1], fb, g),
+                    );
                 }
                 for p in 0..2 {
                     step(&tess, &mut states[p], &forces[p], &params, &mut ws[p]).expect("finite");
@@ -283,8 +300,9 @@ mod tests {
     }
 
     /// Two balls with mass, jointed where they touch and pulled apart by constant forces on
-    /// their far sides: (largest gap over the last second, whether any step failed).
-    fn pulled_apart_with_mass(rate: f64) -> (f64, bool) {
+    /// their far sides, rigid or with free membranes, the joint's force entering as `load`:
+    /// (largest gap over the last second, whether any step failed).
+    fn pulled_apart_with_mass(rate: f64, membrane: bool, load: JointLoad) -> (f64, bool) {
         use crate::model::inertia::{
             InertiaParams, InertiaWorkspace, Velocity, step as inertia_step,
         };
@@ -293,7 +311,7 @@ mod tests {
             dt: 0.05,
             ..Default::default()
         };
-        params.free.local = false;
+        params.free.local = membrane;
         params.free.shape = [false; 6];
         let inertia = InertiaParams {
             damping: 1.0,
@@ -328,7 +346,7 @@ mod tests {
                 forces[p].add(&far[p], pull, 0.0);
             }
             let [fa, fb] = &mut forces;
-            let gap = joint.apply(rate, (&tess, &x[0], fa), (&tess, &x[1], fb));
+            let gap = joint.apply(rate, (&tess, &x[0], fa, load), (&tess, &x[1], fb, load));
             if k >= 380 {
                 worst = worst.max(gap.length());
             }
@@ -356,12 +374,86 @@ mod tests {
         // At η = ½ β Δt the jointed pair settles with the joint closed; at the first-order rate
         // (0.2 > β Δt = 0.05) the multiplier's integral action outruns the damping and the gap
         // grows without bound (Routh–Hurwitz, see `inertial_multiplier_rate`).
-        let (gap, failed) = pulled_apart_with_mass(inertial_multiplier_rate(1.0, 0.05));
+        let nodal = JointLoad::Nodal;
+        let (gap, failed) =
+            pulled_apart_with_mass(inertial_multiplier_rate(1.0, 0.05), false, nodal);
         assert!(!failed && gap < 1e-3, "stable rate: gap {gap}");
-        let (gap, failed) = pulled_apart_with_mass(MULTIPLIER_RATE);
+        let (gap, failed) = pulled_apart_with_mass(MULTIPLIER_RATE, false, nodal);
         assert!(
             failed || gap > 1.0,
             "the first-order rate should be unstable with mass: gap {gap}"
         );
+    }
+
+    #[test]
+    fn with_mass_and_free_membranes_the_joint_holds() {
+        let rate = inertial_multiplier_rate(1.0, 0.05);
+        let (gap, failed) = pulled_apart_with_mass(rate, true, JointLoad::Nodal);
+        assert!(!failed && gap < 0.05, "gap {gap}");
+    }
+
+    #[test]
+    fn a_joint_holds_a_model_with_mass_to_one_without() {
+        // The plugin's case that tests/plugin_properties.rs found: a ball with mass and a free
+        // membrane jointed to a first-order ball, each end loaded as the plugin loads it. With
+        // the force on the massive ball's global coordinates alone (and its semi-axes clipped
+        // at their bound after each sub-step) its frame ran away, to 6e18 in 300 steps.
+        use crate::model::inertia::{
+            InertiaParams, InertiaWorkspace, Velocity, step as inertia_step,
+        };
+        let tess = Tessellation::new(7);
+        let params = DynamicsParams {
+            dt: 0.05,
+            ..Default::default()
+        };
+        let inertia = InertiaParams::default();
+        let run = |load: JointLoad| -> f64 {
+            let mut states = [
+                ball(&tess, DVec3::new(-0.5, 0.0, 0.0)),
+                ball(&tess, DVec3::new(1.5, 0.3, -0.4)),
+            ];
+            let (mut ws, mut iws) = (Workspace::default(), InertiaWorkspace::default());
+            let mut v = Velocity::zero(tess.node_count());
+            let mut joint = Joint::new(
+                JointEnd { u: 0.0, v: 0.0 },
+                JointEnd {
+                    u: 0.3,
+                    v: std::f64::consts::PI,
+                },
+                Joint::DEFAULT_STIFFNESS,
+            );
+            let rate = inertial_multiplier_rate(inertia.damping, params.dt);
+            let mut worst = 0.0_f64;
+            for k in 0..300 {
+                let (x, mut forces) = positions_and_no_forces(&tess, &states);
+                let [fa, fb] = &mut forces;
+                let global = JointLoad::Global;
+                let gap = joint.apply(rate, (&tess, &x[0], fa, global), (&tess, &x[1], fb, load));
+                if k >= 250 {
+                    worst = worst.max(gap.length());
+                }
+                step(&tess, &mut states[0], &forces[0], &params, &mut ws).expect("first order");
+                if inertia_step(
+                    &tess,
+                    &mut states[1],
+                    &mut v,
+                    &forces[1],
+                    &params,
+                    &inertia,
+                    &mut iws,
+                )
+                .is_err()
+                {
+                    return f64::INFINITY;
+                }
+            }
+            let far = states
+                .iter()
+                .map(|s| s.translation.length())
+                .fold(0.0, f64::max);
+            worst.max(if far > 10.0 { far } else { 0.0 })
+        };
+        let held = run(JointLoad::for_model(true));
+        assert!(held < 0.05, "gap {held}");
     }
 }

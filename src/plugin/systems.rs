@@ -7,7 +7,7 @@ use crate::model::dynamics::{step, step_prepared};
 use crate::model::fit::{Stage, StageClock, max_motion};
 use crate::model::forces::range::Robust;
 use crate::model::inertia::{self, Velocity};
-use crate::model::joint::{MULTIPLIER_RATE, inertial_multiplier_rate};
+use crate::model::joint::{JointLoad, MULTIPLIER_RATE, inertial_multiplier_rate};
 use crate::model::superquadric::SuperquadricParams;
 use bevy::math::DVec3;
 use bevy::prelude::*;
@@ -276,8 +276,18 @@ pub fn joint_forces(
         }
         pj.gap = pj.joint.apply(
             rate,
-            (tess_a, &a.node_x, &mut a.forces),
-            (tess_b, &b.node_x, &mut b.forces),
+            (
+                tess_a,
+                &a.node_x,
+                &mut a.forces,
+                JointLoad::for_model(inertia_a.is_some()),
+            ),
+            (
+                tess_b,
+                &b.node_x,
+                &mut b.forces,
+                JointLoad::for_model(inertia_b.is_some()),
+            ),
         );
     }
 }
