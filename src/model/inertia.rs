@@ -430,12 +430,7 @@ fn accelerations_in(
     }
     for x in 0..NUM_GLOBAL_VELOCITY {
         if !free[x] {
-            for y in 0..NUM_GLOBAL_VELOCITY {
-                s_mat[x][y] = 0.0;
-                s_mat[y][x] = 0.0;
-            }
-            s_mat[x][x] = 1.0;
-            rhs[x] = 0.0;
+            hold(&mut s_mat, &mut rhs, x);
         } else {
             // A node set with no extent along a direction (e.g. ε at a sphere's axes) leaves a
             // tiny pivot; a relative ridge keeps the solve finite.
@@ -456,12 +451,7 @@ fn accelerations_in(
     let pushed = pushed_at_bounds(state, v, &global);
     if pushed.iter().any(|&p| p) {
         for x in (0..NUM_GLOBAL_VELOCITY).filter(|&x| pushed[x]) {
-            for y in 0..NUM_GLOBAL_VELOCITY {
-                s_mat[x][y] = 0.0;
-                s_mat[y][x] = 0.0;
-            }
-            s_mat[x][x] = 1.0;
-            rhs[x] = 0.0;
+            hold(&mut s_mat, &mut rhs, x);
         }
         global = cholesky_solve(&s_mat, &rhs).ok_or(singular)?;
     }
@@ -477,6 +467,21 @@ fn accelerations_in(
         }
     }
     Ok(global)
+}
+
+/// Holds global coordinate `x` in the solve S v̇ = rhs: its row and column become the identity's
+/// and its force zero, so that its acceleration is 0 and the others are solved without it.
+fn hold(
+    s_mat: &mut [[f64; NUM_GLOBAL_VELOCITY]; NUM_GLOBAL_VELOCITY],
+    rhs: &mut [f64; NUM_GLOBAL_VELOCITY],
+    x: usize,
+) {
+    for y in 0..NUM_GLOBAL_VELOCITY {
+        s_mat[x][y] = 0.0;
+        s_mat[y][x] = 0.0;
+    }
+    s_mat[x][x] = 1.0;
+    rhs[x] = 0.0;
 }
 
 /// The coordinates at a bound of `advance` that are not moving away from it and that the
