@@ -2,7 +2,8 @@
 //! image parts are pulled by their image.
 //! `cargo run --release --example scene [-- SCENE] [--screenshot FILE [--exit-after-steps N]]`
 //! SCENE is a `.dsq.ron` file under `assets/` (default `scenes/cow.dsq.ron`). A scene that fails
-//! to load is logged and the window stays open.
+//! to load is logged and the window stays open. The mouse orbits the camera and pulls models;
+//! the inspector window tunes them.
 use bevy::prelude::*;
 use bevy_deformable_sq::prelude::*;
 
@@ -19,6 +20,7 @@ fn main() -> AppExit {
     app.add_plugins((
         screenshot::default_plugins(),
         DeformableSqPlugins::default(),
+        orbit::OrbitCameraPlugin,
     ))
     .insert_resource(ScenePath(scene))
     .add_systems(Startup, setup);
@@ -43,5 +45,7 @@ fn setup(mut commands: Commands, assets: Res<AssetServer>, scene: Res<ScenePath>
     ));
 }
 
+#[path = "support/orbit.rs"]
+mod orbit;
 #[path = "support/screenshot.rs"]
 mod screenshot;

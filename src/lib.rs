@@ -25,7 +25,7 @@
 //! | `serialize` | yes | serde derives on the components |
 //! | `debug_render` | yes | `debug_render::DeformableSqDebugPlugin`: gizmos for data and springs |
 //! | `picking` | no | `picking::MouseSpringPlugin`: pull models with the mouse |
-//! | `egui` | no | bevy_egui, for the inspector panel |
+//! | `egui` | no | `inspector::DeformableSqInspectorPlugin` and `inspector::model_inspector_ui`: the model inspector panel |
 //! | `hot_reload` | no | scene files reload when they change on disk |
 //! | `examples` | no | a window, a font, picking and egui, for the windowed examples |
 //!
@@ -44,6 +44,8 @@
 
 #[cfg(feature = "debug_render")]
 pub mod debug_render;
+#[cfg(feature = "egui")]
+pub mod inspector;
 pub mod io;
 pub mod model;
 #[cfg(feature = "picking")]
@@ -69,6 +71,11 @@ pub mod prelude {
     pub use crate::DeformableSqPlugins;
     #[cfg(feature = "debug_render")]
     pub use crate::debug_render::{DebugRenderConfig, DeformableSqDebugPlugin, DeformableSqGizmos};
+    #[cfg(feature = "egui")]
+    pub use crate::inspector::{
+        DeformableSqInspectorPlugin, InspectedModel, InspectorState, InspectorSystems,
+        ResidualHistory, model_inspector_ui,
+    };
     #[cfg(feature = "picking")]
     pub use crate::picking::{
         ModelGrabbed, MouseSpring, MouseSpringPlugin, MouseSpringSettings, MouseSpringSystems,
@@ -79,9 +86,9 @@ pub mod prelude {
         ScenePart,
     };
     pub use crate::plugin::{
-        DeformableSqPlugin, DeformableSqSystems, FemMesh, GlobalShape, ImageData, Inertia,
-        LocalDofs, ModelSettings, PartJoint, RangeData, RigidState, SimControl, Spring,
-        SpringForces, simulation_task_pools,
+        DeformableSqPlugin, DeformableSqSystems, FemMesh, FitDriver, FitFinished, GlobalShape,
+        ImageData, Inertia, LocalDofs, ModelFrozen, ModelSettings, PartJoint, RangeData,
+        RigidState, SimControl, Spring, SpringForces, simulation_task_pools,
     };
     pub use crate::render::{DeformableSqRenderPlugin, ModelColor, ModelMesh};
 }

@@ -71,6 +71,11 @@ impl Plugin for MouseSpringPlugin {
             .register_type::<MouseSpringSettings>()
             .add_message::<ModelGrabbed>()
             .add_systems(Update, drag_spring.in_set(MouseSpringSystems))
+            // Where the simulation runs in `Update`, the spring moves before the step.
+            .configure_sets(
+                Update,
+                MouseSpringSystems.before(crate::plugin::DeformableSqSystems::Prepare),
+            )
             .add_observer(grab)
             .add_observer(release)
             .add_observer(drag_end);

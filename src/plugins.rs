@@ -9,8 +9,10 @@ use bevy::prelude::FixedUpdate;
 
 /// Every plugin of the crate: the simulation ([`DeformableSqPlugin`]), the dynamic meshes
 /// ([`DeformableSqRenderPlugin`]), scene files as assets
-/// ([`DeformableSqScenePlugin`]) and, with the `debug_render` feature, the gizmos
-/// (`debug_render::DeformableSqDebugPlugin`). Each can be disabled or replaced
+/// ([`DeformableSqScenePlugin`]), with the `debug_render` feature the gizmos
+/// (`debug_render::DeformableSqDebugPlugin`), with `picking` the mouse springs
+/// (`picking::MouseSpringPlugin`) and with `egui` the inspector window
+/// (`inspector::DeformableSqInspectorPlugin`). Each can be disabled or replaced
 /// (`DeformableSqPlugins::default().build().disable::<DeformableSqRenderPlugin>()`), and they may
 /// be added before or after Bevy's own plugins.
 #[derive(Clone, Copy, Debug)]
@@ -46,6 +48,10 @@ impl PluginGroup for DeformableSqPlugins {
             .add(DeformableSqScenePlugin);
         #[cfg(feature = "debug_render")]
         let group = group.add(crate::debug_render::DeformableSqDebugPlugin);
+        #[cfg(feature = "picking")]
+        let group = group.add(crate::picking::MouseSpringPlugin);
+        #[cfg(feature = "egui")]
+        let group = group.add(crate::inspector::DeformableSqInspectorPlugin);
         group
     }
 }

@@ -386,6 +386,89 @@ fn a_state_made_non_finite_from_outside_freezes_the_model() {
     assert!(!c.frozen && r.translation.is_finite());
 }
 
+/// What the plugin's messages said, collected each update.
+#[derive(Resource, Default)]
+struct Heard {
+    fits: Vec<FitFinished>,
+    frozen: Vec<ModelFrozen>,
+}
+
+fn listen(
+    mut heard: ResMut<Heard>,
+    mut fits: MessageReader<FitFinished>,
+    mut frozen: MessageReader<ModelFrozen>,
+) {
+    heard.fits.extend(fits.read().copied());
+    heard.frozen.extend(frozen.read().cloned());
+}
+
+#[test]
+fn a_freeze_and_a_fit_to_convergence_are_each_reported_once() {
+    let mut app = app();
+    app.init_resource::<Heard>().add_systems(Update, listen);
+    let frozen = spawn_model(&mut app, cloud(6, DVec3::ZERO), DVec3::ZERO, 9);
+    let fitted = spawn_model(&mut app, cloud(7, DVec3::X * 4.0), DVec3::X * 4.1, 9);
+    run_steps(&mut app, 3);
+    app.world_mut()
+        .get_mut::<RigidState>(frozen)
+        .unwrap()
+        .translation
+        .y = f64::INFINITY;
+    let options = bevy_deformable_sq::model::fit::FitOptions::default();
+    app.world_mut()
+        .entity_mut(fitted)
+        .insert(FitDriver::to_convergence(options));
+    for _ in 0..(options.max_steps as usize * 2) {
+        app.update();
+        if !app.world().resource::<Heard>().fits.is_empty() {
+            break;
+        }
+    }
+    // A few more updates: neither event is sent again while nothing changes.
+    for _ in 0..20 {
+        app.update();
+    }
+    let heard = app.world().resource::<Heard>();
+    assert_eq!(heard.frozen.len(), 1, "{:?}", heard.frozen);
+    assert_eq!(heard.frozen[0].model, frozen);
+    assert!(
+        heard.frozen[0].error.contains("RigidState"),
+        "{:?}",
+        heard.frozen
+    );
+    assert_eq!(heard.fits.len(), 1, "{:?}", heard.fits);
+    let fit = heard.fits[0];
+    let control = app.world().get::<SimControl>(fitted).unwrap();
+    assert!(
+        fit.model == fitted && fit.at_rest && control.paused,
+        "{fit:?} {control:?}"
+    );
+    assert_eq!(fit.steps, control.steps);
+    let (r, ..) = state_of(&app, fitted);
+    assert!((r.translation - DVec3::X * 4.0).length() < 0.1, "{r:?}");
+    // A reset clears the freeze; freezing again is reported again.
+    app.world_mut()
+        .get_mut::<SimControl>(frozen)
+        .unwrap()
+        .reset_requested = true;
+    run_steps(&mut app, 2);
+    app.world_mut()
+        .get_mut::<LocalDofs>(frozen)
+        .unwrap()
+        .displacement[0]
+        .x = f64::NAN;
+    for _ in 0..5 {
+        app.update();
+    }
+    let heard = app.world().resource::<Heard>();
+    assert_eq!(heard.frozen.len(), 2, "{:?}", heard.frozen);
+    assert!(
+        heard.frozen[1].error.contains("LocalDofs"),
+        "{:?}",
+        heard.frozen
+    );
+}
+
 #[test]
 fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
     use bevy_deformable_sq::model::fit::{FitOptions, fit};

@@ -59,11 +59,14 @@ pub fn args() -> Option<(PathBuf, u64)> {
     Some((PathBuf::from(path), steps))
 }
 
-/// `DefaultPlugins` with the compute pool on every core ([`simulation_task_pools`]), and with
-/// synchronous pipeline compilation when a screenshot is asked for.
+/// `DefaultPlugins` with the compute pool on every core ([`simulation_task_pools`]), with mesh
+/// picking (for the mouse springs) and egui (for the inspector), and with synchronous pipeline
+/// compilation when a screenshot is asked for.
 pub fn default_plugins() -> PluginGroupBuilder {
     let plugins = DefaultPlugins
         .build()
+        .add(bevy::picking::mesh_picking::MeshPickingPlugin)
+        .add(bevy_egui::EguiPlugin::default())
         .set(TaskPoolPlugin {
             task_pool_options: simulation_task_pools(),
         })

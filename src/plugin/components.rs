@@ -26,7 +26,15 @@ use std::sync::Arc;
 #[derive(Component, Reflect, Clone, Copy, Debug, PartialEq)]
 #[reflect(Component, Default, Debug, PartialEq)]
 #[cfg_attr(feature = "serialize", derive(serde::Serialize, serde::Deserialize))]
-#[require(RigidState, LocalDofs, FemMesh, ModelSettings, SimControl, Scratch)]
+#[require(
+    RigidState,
+    LocalDofs,
+    FemMesh,
+    ModelSettings,
+    SimControl,
+    Scratch,
+    super::messages::Reported
+)]
 pub struct GlobalShape {
     /// Scale a.
     pub a: f64,
@@ -561,6 +569,18 @@ impl FitDriver {
             substepped_steps: 0,
             seen_steps: 0,
         }
+    }
+
+    /// A fit to convergence from the model's current state, as `dsq fit` runs one: the
+    /// placing, global and joint stages within `options.max_steps` steps. Insert it on a model
+    /// with [`RangeData`] and unpause the model; [`FitFinished`](super::FitFinished) is sent
+    /// when it ends.
+    pub fn to_convergence(options: FitOptions) -> Self {
+        Self::new(
+            options,
+            [Stage::Cover, Stage::Global, Stage::Joint],
+            options.max_steps as u64,
+        )
     }
 
     /// Queues more stages (e.g. the joint stage after choosing a hypothesis) with a new budget;

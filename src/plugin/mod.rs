@@ -9,10 +9,12 @@
 
 pub mod components;
 pub mod headless;
+mod messages;
 pub mod scene;
 pub mod systems;
 
 pub use components::*;
+pub use messages::{FitFinished, ModelFrozen};
 
 use bevy::ecs::schedule::{InternedScheduleLabel, ScheduleLabel};
 use bevy::prelude::*;
@@ -32,7 +34,8 @@ pub enum DeformableSqSystems {
     Integrate,
     /// Models with a [`FitDriver`]: rest detection, reattachment and the stages of a fit.
     Converge,
-    /// Copy the model frame into `Transform` (and, in debug builds, check every state is finite).
+    /// Copy the model frame into `Transform`, send [`FitFinished`] and [`ModelFrozen`] (and, in
+    /// debug builds, check every state is finite).
     WriteBack,
 }
 
@@ -111,6 +114,8 @@ impl Plugin for DeformableSqPlugin {
             .register_type::<ModelSettings>()
             .register_type::<SimControl>()
             .register_type::<SpringForces>()
+            .add_message::<FitFinished>()
+            .add_message::<ModelFrozen>()
             .configure_sets(
                 self.schedule,
                 (
@@ -133,7 +138,7 @@ impl Plugin for DeformableSqPlugin {
                         .in_set(GatherForces),
                     systems::integrate.in_set(Integrate),
                     systems::drive_fits.in_set(Converge),
-                    systems::write_transforms.in_set(WriteBack),
+                    (systems::write_transforms, messages::send_messages).in_set(WriteBack),
                 ),
             );
         #[cfg(debug_assertions)]
