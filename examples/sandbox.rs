@@ -5,10 +5,8 @@
 //!
 //! SCENE is a `.dsq.ron` file under `assets/` (default `scenes/sandbox.dsq.ron`); `--potential`
 //! and `--wireframe` start with those display toggles on; `--select` opens the inspector on the
-//! part of that name. The crate's plugins do the work: the simulation, the meshes, scene files,
-//! the mouse springs (`MouseSpringPlugin`) and the inspector window
-//! (`DeformableSqInspectorPlugin`). This example adds the scene list, the toolbar, placing and
-//! joining parts, and keys; `CHEAT_SHEET` lists the mouse and keys.
+//! part of that name. `DeformableSqPlugins` does the work (simulation, meshes, scene files, mouse
+//! springs, inspector); this example adds the scene list, placing and joining parts, and keys.
 use bevy::diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin};
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::pbr::wireframe::{Wireframe, WireframePlugin};
@@ -29,14 +27,14 @@ use glam::DVec3;
 struct SimStep;
 
 /// The sandbox's own state (the inspector keeps the selection and the message line).
-#[derive(Resource)]
+#[derive(Resource, Default)]
 struct Sandbox {
     scene: String,
-    scenes: Vec<String>,
+    scenes: std::collections::BTreeSet<String>,
     root: Option<Entity>,
     steps_per_frame: u32,
     running: bool,
-    single_steps: u32,
+    step_once: bool,
     show_images: bool,
     show_potential: bool,
     wireframe: bool,
@@ -54,15 +52,11 @@ fn main() -> AppExit {
         .find(|a| a.ends_with(".dsq.ron"))
         .cloned()
         .unwrap_or_else(|| "scenes/sandbox.dsq.ron".into());
-    let mut scenes: Vec<String> = std::fs::read_dir(screenshot::assets_dir().0.join("scenes"))
-        .map(|d| {
-            d.filter_map(|e| e.ok())
-                .map(|e| format!("scenes/{}", e.file_name().to_string_lossy()))
-                .filter(|n| n.ends_with(".dsq.ron"))
-                .collect()
-        })
-        .unwrap_or_default();
-    scenes.sort();
+    let dir = screenshot::assets_dir().0.join("scenes");
+    let scenes = (std::fs::read_dir(dir).into_iter().flatten().flatten())
+        .map(|e| format!("scenes/{}", e.file_name().display()))
+        .filter(|n| n.ends_with(".dsq.ron"))
+        .collect();
     let mut app = App::new();
     app.add_plugins((
         screenshot::default_plugins(),
@@ -72,17 +66,13 @@ fn main() -> AppExit {
         orbit::OrbitCameraPlugin,
     ))
     .insert_resource(Sandbox {
-        scene: String::new(),
         scenes,
-        root: None,
         steps_per_frame: 2,
         running: true,
-        single_steps: 0,
         show_images: true,
         show_potential: flag("--potential"),
         wireframe: flag("--wireframe"),
-        placing: None,
-        joining: None,
+        ..default()
     })
     .insert_resource(InspectorState {
         select_name: args
@@ -92,14 +82,11 @@ fn main() -> AppExit {
         ..default()
     })
     .init_schedule(SimStep)
-    .add_systems(Startup, move |world: &mut World| {
-        setup(world);
-        open_scene(world, &scene);
-    })
+    .add_systems(Startup, move |w: &mut World| open_scene(w, &scene))
     .add_systems(
         Update,
         (
-            (keys, fit_selected).before(MouseSpringSystems),
+            keys.before(MouseSpringSystems),
             (place_part, run_simulation, apply_display).after(MouseSpringSystems),
         ),
     )
@@ -108,26 +95,6 @@ fn main() -> AppExit {
     demo_drag::maybe_add(&mut app, &args);
     screenshot::maybe_add(&mut app);
     app.run()
-}
-
-fn setup(world: &mut World) {
-    world.spawn((
-        Camera3d::default(),
-        DeformableSceneCamera,
-        Transform::default(),
-    ));
-    world.spawn((
-        DirectionalLight {
-            shadow_maps_enabled: true,
-            illuminance: 8000.0,
-            ..default()
-        },
-        Transform::from_xyz(3.0, 8.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y),
-    ));
-    world.insert_resource(GlobalAmbientLight {
-        brightness: 300.0,
-        ..default()
-    });
 }
 
 /// Replaces the open scene by the scene file at `path` (under `assets/`).
@@ -149,34 +116,28 @@ fn save_open_scene(world: &mut World) {
     let s = world.resource::<Sandbox>();
     let name = s.scene.replace(".dsq.ron", "_saved.dsq.ron");
     let out = assets.join(name.replace("_saved_saved", "_saved"));
-    let message = match s.root {
-        Some(root) => match save_scene(world, root, &out, &assets, true) {
-            Ok(()) => format!("saved {}", out.display()),
-            Err(e) => format!("save failed: {e}"),
-        },
-        None => "no scene to save".into(),
+    let Some(root) = s.root else {
+        return;
+    };
+    let message = match save_scene(world, root, &out, &assets, true) {
+        Ok(()) => format!("saved {}", out.display()),
+        Err(e) => format!("save failed: {e}"),
     };
     world.resource_mut::<InspectorState>().message = message;
 }
 
-/// What a button or key asks for that needs the whole world.
-enum Request {
-    Open(String),
-    Save,
-}
-
-fn run_request(request: Request) -> impl FnOnce(&mut World) {
-    move |world: &mut World| match request {
-        Request::Open(path) => open_scene(world, &path),
-        Request::Save => save_open_scene(world),
+/// Starts placing a new part, or making a joint, and shows how.
+fn begin(sandbox: &mut Sandbox, inspector: &mut InspectorState, joint: bool) {
+    sandbox.placing = (!joint).then(Vec::new);
+    sandbox.joining = joint.then(Vec::new);
+    inspector.message = if joint {
+        "New joint: click a point on one part, then a point on another. Esc cancels."
+    } else {
+        "New part: click both ends of its major axis, then both ends of its minor axis, on the \
+         ground (y = 0), or on the image plane (z = 0) when the scene has an image. Esc cancels."
     }
+    .into();
 }
-
-const PLACING_HELP: &str = "New part: click both ends of its major axis, then both ends of its \
-minor axis, on the ground (y = 0) or on the image plane (z = 0) when the scene has an image. Esc cancels.";
-
-const JOINING_HELP: &str = "New joint: click a point on one part, then a point on another: \
-the joint holds them together (model::joint). Esc cancels.";
 
 /// Keyboard shortcuts (ignored while egui has the keyboard); the mouse springs and the orbit's
 /// left button are off while the left button places a part or picks a joint's end.
@@ -187,8 +148,8 @@ fn keys(
     mut inspector: ResMut<InspectorState>,
     mut springs: ResMut<MouseSpringSettings>,
     mut orbit: ResMut<orbit::Orbit>,
-    mut controls: Query<&mut SimControl>,
-    instances: Query<&SceneInstance>,
+    mut controls: Query<(&mut SimControl, Has<RangeData>)>,
+    mut commands: Commands,
 ) {
     if !egui.wants_any_keyboard_input() {
         let pressed = |k| input.just_pressed(k);
@@ -196,59 +157,28 @@ fn keys(
             sandbox.running = !sandbox.running;
         }
         if pressed(KeyCode::KeyS) {
-            sandbox.running = false;
-            sandbox.single_steps += 1;
+            (sandbox.running, sandbox.step_once) = (false, true);
         }
-        if pressed(KeyCode::KeyN) {
-            sandbox.placing = Some(Vec::new());
-            inspector.message = PLACING_HELP.into();
-        }
-        if pressed(KeyCode::KeyJ) {
-            sandbox.joining = Some(Vec::new());
-            inspector.message = JOINING_HELP.into();
+        if pressed(KeyCode::KeyN) || pressed(KeyCode::KeyJ) {
+            begin(&mut sandbox, &mut inspector, pressed(KeyCode::KeyJ));
         }
         if pressed(KeyCode::Escape) {
             (sandbox.placing, sandbox.joining) = (None, None);
         }
-        if pressed(KeyCode::Tab) {
-            let parts: Vec<Entity> = instances.iter().flat_map(|i| i.parts.clone()).collect();
-            let at = inspector
-                .selected
-                .and_then(|s| parts.iter().position(|p| *p == s));
-            inspector.selected = match at {
-                Some(i) => parts.get((i + 1) % parts.len()).copied(),
-                None => parts.first().copied(),
-            };
-        }
-        if let Some(mut control) = inspector.selected.and_then(|e| controls.get_mut(e).ok()) {
+        if let Some(e) = inspector.selected
+            && let Ok((mut control, range)) = controls.get_mut(e)
+        {
             control.reset_requested |= pressed(KeyCode::KeyR);
+            if range && pressed(KeyCode::KeyF) {
+                let fit = FitDriver::to_convergence(default());
+                commands.entity(e).insert(fit);
+                control.paused = false;
+            }
         }
     }
     let picking = sandbox.placing.is_some() || sandbox.joining.is_some();
     springs.enabled = !picking;
     orbit.left_button = !picking;
-}
-
-/// `F` fits the selected range part to convergence (the inspector's button does the same).
-fn fit_selected(
-    input: Res<ButtonInput<KeyCode>>,
-    egui: Res<EguiWantsInput>,
-    inspector: Res<InspectorState>,
-    mut parts: Query<&mut SimControl, With<RangeData>>,
-    mut commands: Commands,
-) {
-    if egui.wants_any_keyboard_input() || !input.just_pressed(KeyCode::KeyF) {
-        return;
-    }
-    if let Some(e) = inspector.selected
-        && let Ok(mut control) = parts.get_mut(e)
-    {
-        let options = bevy_deformable_sq::model::fit::FitOptions::default();
-        commands
-            .entity(e)
-            .insert(FitDriver::to_convergence(options));
-        control.paused = false;
-    }
 }
 
 /// Making a joint: each click on a model while joining picks the node nearest the hit as one
@@ -261,11 +191,10 @@ fn pick_joint_end(
     models: Query<(&FemMesh, &RigidState, &GlobalShape, &LocalDofs)>,
     mut commands: Commands,
 ) {
-    let entity = press.entity;
-    let (Some(ends), PointerButton::Primary) = (sandbox.joining.as_mut(), press.button) else {
-        return;
-    };
-    let Ok((fem, rigid, shape, local)) = models.get(entity) else {
+    let (entity, primary) = (press.entity, press.button == PointerButton::Primary);
+    let (Some(ends), Ok((fem, rigid, shape, local)), true) =
+        (sandbox.joining.as_mut(), models.get(entity), primary)
+    else {
         return;
     };
     let (Some(tess), Some(hit)) = (fem.get(), press.hit.position) else {
@@ -319,13 +248,10 @@ fn place_part(
         return;
     }
     let (camera, cam_tf) = *camera;
-    let Some(ray) = window
-        .cursor_position()
-        .and_then(|c| camera.viewport_to_world(cam_tf, c).ok())
-    else {
-        return;
-    };
-    let Some(t) = ray.intersect_plane(Vec3::ZERO, InfinitePlane3d::new(normal)) else {
+    let at = |c| camera.viewport_to_world(cam_tf, c).ok();
+    let ray = window.cursor_position().and_then(at);
+    let plane = InfinitePlane3d::new(normal);
+    let Some((ray, t)) = ray.and_then(|r| Some((r, r.intersect_plane(Vec3::ZERO, plane)?))) else {
         return;
     };
     points.push(ray.get_point(t));
@@ -342,15 +268,14 @@ fn place_part(
         return;
     };
     let name = format!("part {}", instance.parts.len() + 1);
-    let rigid = RigidState {
-        translation,
-        rotation,
-    };
     let e = commands
         .spawn((
             Name::new(name.clone()),
             GlobalShape::from(shape),
-            rigid,
+            RigidState {
+                translation,
+                rotation,
+            },
             FemMesh::new(31),
             ChildOf(root.expect("the instance is the root's")),
         ))
@@ -360,36 +285,45 @@ fn place_part(
     inspector.message = format!("placed {name}");
 }
 
-/// Runs `steps_per_frame` simulation steps while running, or the requested single steps.
+/// Runs `steps_per_frame` simulation steps while running, or the one step asked for.
 fn run_simulation(world: &mut World) {
-    let s = world.resource::<Sandbox>();
-    let steps = if s.running {
-        s.steps_per_frame
-    } else {
-        s.single_steps.min(1)
+    let mut s = world.resource_mut::<Sandbox>();
+    let steps = match s.running {
+        true => s.steps_per_frame,
+        false => std::mem::take(&mut s.step_once) as u32,
     };
     for _ in 0..steps {
         world.run_schedule(SimStep);
     }
-    let mut s = world.resource_mut::<Sandbox>();
-    s.single_steps = s.single_steps.saturating_sub(steps);
 }
 
-/// Newly spawned parts and images (a scene opened or reloaded) take the display toggles.
+/// Parts and images take the display toggles when one changes and when a scene spawns them.
 fn apply_display(
     sandbox: Res<Sandbox>,
+    mut applied: Local<Option<[bool; 3]>>,
+    new: Query<(), Or<(Added<ScenePart>, Added<SceneImage>)>>,
+    parts: Query<Entity, With<ScenePart>>,
+    mut images: Query<(&mut SceneImage, &mut Visibility)>,
     mut commands: Commands,
-    parts: Query<Entity, Added<ScenePart>>,
-    mut images: Query<(&mut SceneImage, &mut Visibility), Added<SceneImage>>,
 ) {
-    for e in parts.iter().filter(|_| sandbox.wireframe) {
-        commands.entity(e).insert(Wireframe);
+    let now = [
+        sandbox.wireframe,
+        sandbox.show_images,
+        sandbox.show_potential,
+    ];
+    if *applied == Some(now) && new.is_empty() {
+        return;
+    }
+    *applied = Some(now);
+    for e in &parts {
+        match now[0] {
+            true => commands.entity(e).insert(Wireframe),
+            false => commands.entity(e).remove::<Wireframe>(),
+        };
     }
     for (mut image, mut visibility) in &mut images {
-        image.show_potential = sandbox.show_potential;
-        if !sandbox.show_images {
-            *visibility = Visibility::Hidden;
-        }
+        image.show_potential = now[2];
+        *visibility = [Visibility::Hidden, Visibility::Inherited][now[1] as usize];
     }
 }
 
@@ -399,8 +333,6 @@ fn toolbar(
     mut sandbox: ResMut<Sandbox>,
     mut inspector: ResMut<InspectorState>,
     diagnostics: Res<DiagnosticsStore>,
-    parts: Query<Entity, With<ScenePart>>,
-    mut images: Query<(&mut SceneImage, &mut Visibility)>,
     mut commands: Commands,
 ) -> Result {
     let ctx = contexts.ctx_mut()?;
@@ -411,73 +343,52 @@ fn toolbar(
         .unwrap_or(0.0);
     let window = egui::Window::new("Sandbox")
         .title_bar(false)
-        .resizable(false);
+        .min_width(880.0);
     let window = window.anchor(egui::Align2::RIGHT_BOTTOM, [-10.0, -10.0]);
-    window.min_width(880.0).show(ctx, |ui| {
+    window.resizable(false).show(ctx, |ui| {
         ui.horizontal_wrapped(|ui| {
             egui::ComboBox::from_id_salt("scene")
                 .selected_text(s.scene.clone())
                 .show_ui(ui, |ui| {
                     for scene in &s.scenes {
                         if ui.selectable_label(*scene == s.scene, scene).clicked() {
-                            commands.queue(run_request(Request::Open(scene.clone())));
+                            let scene = scene.clone();
+                            commands.queue(move |w: &mut World| open_scene(w, &scene));
                         }
                     }
                 });
             if ui.button("Save scene").clicked() {
-                commands.queue(run_request(Request::Save));
+                commands.queue(save_open_scene);
             }
             if ui.button("New part (4 clicks)").clicked() {
-                s.placing = Some(Vec::new());
-                inspector.message = PLACING_HELP.into();
+                begin(s, &mut inspector, false);
             }
             if ui.button("New joint (2 clicks)").clicked() {
-                s.joining = Some(Vec::new());
-                inspector.message = JOINING_HELP.into();
+                begin(s, &mut inspector, true);
             }
             if ui.button(if s.running { "Pause" } else { "Run" }).clicked() {
                 s.running = !s.running;
             }
             if ui.button("Step").clicked() {
-                s.running = false;
-                s.single_steps += 1;
+                (s.running, s.step_once) = (false, true);
             }
             ui.add(egui::Slider::new(&mut s.steps_per_frame, 1..=20).text("steps/frame"));
-            if ui.checkbox(&mut s.wireframe, "wireframe").changed() {
-                for e in &parts {
-                    match s.wireframe {
-                        true => commands.entity(e).insert(Wireframe),
-                        false => commands.entity(e).remove::<Wireframe>(),
-                    };
-                }
-            }
-            let (image, potential) = (
-                ui.checkbox(&mut s.show_images, "image").changed(),
-                ui.checkbox(&mut s.show_potential, "potential P").changed(),
-            );
-            if image || potential {
-                for (mut im, mut v) in &mut images {
-                    im.show_potential = s.show_potential;
-                    *v = [Visibility::Hidden, Visibility::Inherited][s.show_images as usize];
-                }
-            }
+            ui.checkbox(&mut s.wireframe, "wireframe");
+            ui.checkbox(&mut s.show_images, "image");
+            ui.checkbox(&mut s.show_potential, "potential P");
             ui.label(format!("frame {frame_ms:.1} ms"))
-                .on_hover_text(CHEAT_SHEET.join("\n"));
+                .on_hover_text(CHEAT_SHEET);
         });
     });
     Ok(())
 }
 
 /// The mouse and keys, also in docs/sandbox.md; shown over the toolbar's frame time.
-const CHEAT_SHEET: &[&str] = &[
-    "Left drag on a model: pull it with a spring",
-    "Left / right drag on empty space: orbit",
-    "Middle drag or Shift + right drag: pan",
-    "Wheel or + / -: zoom; arrows: orbit; Home: reset view",
-    "Space: pause / run; S: single step",
-    "Tab: next part; R: reset part; F: fit part to convergence",
-    "N: new part from four clicks (major axis ends, minor axis ends); J: new joint; Esc: cancel",
-];
+const CHEAT_SHEET: &str = "Left drag on a model: pull it with a spring
+Left / right drag on empty space: orbit; middle drag or Shift + right drag: pan
+Wheel or + / -: zoom; arrows: orbit; Home: reset view
+Space: pause / run; S: single step; R: reset the selected part; F: fit it to convergence
+N: new part from four clicks (major axis ends, minor axis ends); J: new joint; Esc: cancel";
 
 #[path = "support/demo_drag.rs"]
 mod demo_drag;

@@ -2,7 +2,7 @@
 //! image parts are pulled by their image.
 //! `cargo run --release --example scene [-- SCENE] [--screenshot FILE [--exit-after-steps N]]`
 //! SCENE is a `.dsq.ron` file under `assets/` (default `scenes/cow.dsq.ron`). A scene that fails
-//! to load is logged and the window stays open. The mouse orbits the camera and pulls models;
+//! to load is logged and the window stays open. The mouse orbits the camera (which the scene places) and pulls models;
 //! the inspector window tunes them.
 use bevy::prelude::*;
 use bevy_deformable_sq::prelude::*;
@@ -30,19 +30,6 @@ fn main() -> AppExit {
 
 fn setup(mut commands: Commands, assets: Res<AssetServer>, scene: Res<ScenePath>) {
     commands.spawn(DeformableSceneRoot(assets.load(scene.0.clone())));
-    // Placed by the scene's `camera` when it has one.
-    commands.spawn((
-        Camera3d::default(),
-        DeformableSceneCamera,
-        Transform::from_xyz(0.0, 1.0, 3.0).looking_at(Vec3::ZERO, Vec3::Y),
-    ));
-    commands.spawn((
-        DirectionalLight {
-            shadow_maps_enabled: true,
-            ..default()
-        },
-        Transform::from_xyz(2.0, 4.0, 3.0).looking_at(Vec3::ZERO, Vec3::Y),
-    ));
 }
 
 #[path = "support/orbit.rs"]

@@ -35,14 +35,32 @@ impl Default for Orbit {
     }
 }
 
-/// Adds [`Orbit`] and the system that places the `Camera3d` from it, after the mouse springs.
+/// Spawns the camera (a [`DeformableSceneCamera`], so a scene's `camera` places it) and a sun,
+/// and adds [`Orbit`] and the system that places the camera from it, after the mouse springs.
 pub struct OrbitCameraPlugin;
 
 impl Plugin for OrbitCameraPlugin {
     fn build(&self, app: &mut App) {
         app.init_resource::<Orbit>()
+            .insert_resource(GlobalAmbientLight {
+                brightness: 300.0,
+                ..default()
+            })
+            .add_systems(Startup, spawn_camera_and_sun)
             .add_systems(Update, orbit_camera.after(MouseSpringSystems));
     }
+}
+
+fn spawn_camera_and_sun(mut commands: Commands) {
+    commands.spawn((Camera3d::default(), DeformableSceneCamera));
+    commands.spawn((
+        DirectionalLight {
+            shadow_maps_enabled: true,
+            illuminance: 8000.0,
+            ..default()
+        },
+        Transform::from_xyz(3.0, 8.0, 5.0).looking_at(Vec3::ZERO, Vec3::Y),
+    ));
 }
 
 fn orbit_camera(
