@@ -27,6 +27,12 @@ use glam::DVec3;
 /// The multiplier's step η for the first-order dynamics: λ gains η κ g per step.
 pub const MULTIPLIER_RATE: f64 = 0.2;
 
+/// The longest gap a joint's stabilising term pulls with, in units of the smaller part's scale
+/// a (the `reach` of [`Joint::apply`]; the plugin's mouse springs stretch as far). A joint made
+/// between parts far apart then pulls them together with a bounded force instead of flinging
+/// the lighter one.
+pub const MAX_REACH: f64 = 1.5;
+
 /// The multiplier's step η for a joint on models with mass ([`super::inertia`]) and damping rate
 /// β, stepping by Δt. With inertia the multiplier is an integral term on an oscillator
 /// (m s³ + βm s² + κ s + ηκ/Δt), stable only while ηκ/Δt < βκ (Routh–Hurwitz): η = ½ β Δt,
@@ -110,10 +116,13 @@ impl Joint {
     /// One step's constraint forces: updates λ by `rate` × κ g from the gap g = x_b − x_a
     /// ([`MULTIPLIER_RATE`], or [`inertial_multiplier_rate`] when a model has mass), then adds
     /// F = λ + κ g at a's end and −F at b's to the two models' forces, each as its
-    /// [`JointLoad`] says. Returns g. A non-finite gap adds nothing and leaves λ alone.
+    /// [`JointLoad`] says. Both terms use g clamped to the length `reach` (the plugin passes
+    /// [`MAX_REACH`] × the smaller scale; `f64::INFINITY` for none). Returns g, unclamped. A
+    /// non-finite gap adds nothing and leaves λ alone.
     pub fn apply(
         &mut self,
         rate: f64,
+        reach: f64,
         (tess_a, x_a, forces_a, load_a): (&Tessellation, &[DVec3], &mut NodalForces, JointLoad),
         (tess_b, x_b, forces_b, load_b): (&Tessellation, &[DVec3], &mut NodalForces, JointLoad),
     ) -> DVec3 {
@@ -125,8 +134,9 @@ impl Joint {
         if !gap.is_finite() || !(self.stiffness > 0.0) {
             return gap;
         }
-        self.multiplier += rate * self.stiffness * gap;
-        let force = self.multiplier + self.stiffness * gap;
+        let pull = gap.clamp_length_max(reach.max(0.0));
+        self.multiplier += rate * self.stiffness * pull;
+        let force = self.multiplier + self.stiffness * pull;
         // Each model is stepped on its own, with the other held where it is: weighed as 2κ (a
         // spring of 2κ to the gap's midpoint), each closes half the gap, and together they close
         // it without overshooting (with κ each would close all of it, and the pair would swing).
@@ -271,6 +281,7 @@ mod tests {
                     let g = JointLoad::Global;
                     gap = joint.apply(
                         MULTIPLIER_RATE,
+                        f64::INFINITY,
                         (&tess, &x[0], fa, g),
                         (&tess, &x[1], fb, g),
                     );
@@ -346,7 +357,12 @@ mod tests {
                 forces[p].add(&far[p], pull, 0.0);
             }
             let [fa, fb] = &mut forces;
-            let gap = joint.apply(rate, (&tess, &x[0], fa, load), (&tess, &x[1], fb, load));
+            let gap = joint.apply(
+                rate,
+                f64::INFINITY,
+                (&tess, &x[0], fa, load),
+                (&tess, &x[1], fb, load),
+            );
             if k >= 380 {
                 worst = worst.max(gap.length());
             }
@@ -428,7 +444,12 @@ mod tests {
                 let (x, mut forces) = positions_and_no_forces(&tess, &states);
                 let [fa, fb] = &mut forces;
                 let global = JointLoad::Global;
-                let gap = joint.apply(rate, (&tess, &x[0], fa, global), (&tess, &x[1], fb, load));
+                let gap = joint.apply(
+                    rate,
+                    f64::INFINITY,
+                    (&tess, &x[0], fa, global),
+                    (&tess, &x[1], fb, load),
+                );
                 if k >= 250 {
                     worst = worst.max(gap.length());
                 }
@@ -455,5 +476,63 @@ mod tests {
         };
         let held = run(JointLoad::for_model(true));
         assert!(held < 0.05, "gap {held}");
+    }
+
+    #[test]
+    fn a_joint_made_across_a_wide_gap_pulls_within_reach() {
+        // The plugin's case that tests/plugin_properties.rs found: a stiff joint (κ = 775) made
+        // between a ball and a light ball with mass 9 scales away. With the whole gap in the
+        // stabilising term the first step grew the light ball's scale from 0.5 to 2.7; within
+        // reach the force is bounded as a mouse spring's is, and inside reach nothing changes.
+        use crate::model::inertia::{
+            InertiaParams, InertiaWorkspace, Velocity, step as inertia_step,
+        };
+        let tess = Tessellation::new(7);
+        let (params, inertia) = (DynamicsParams::default(), InertiaParams::default());
+        let rate = inertial_multiplier_rate(inertia.damping, params.dt);
+        let facing = (
+            JointEnd { u: 0.0, v: 0.0 },
+            JointEnd {
+                u: 0.0,
+                v: std::f64::consts::PI,
+            },
+        );
+        let loads = (JointLoad::Global, JointLoad::Nodal);
+        // The light ball's scale after one step, and the largest nodal force the joint added.
+        let first_step = |at: f64, reach: f64| -> (f64, f64) {
+            let mut states = [ball(&tess, DVec3::ZERO), ball(&tess, DVec3::X * at)];
+            let mut v = Velocity::zero(tess.node_count());
+            let mut joint = Joint::new(facing.0, facing.1, 775.0);
+            let (x, mut f) = positions_and_no_forces(&tess, &states);
+            let [fa, fb] = &mut f;
+            joint.apply(
+                rate,
+                reach,
+                (&tess, &x[0], fa, loads.0),
+                (&tess, &x[1], fb, loads.1),
+            );
+            let pull = f[1].force.iter().fold(DVec3::ZERO, |s, f| s + *f).length();
+            let mut iws = InertiaWorkspace::default();
+            let p = (&params, &inertia, &mut iws);
+            inertia_step(&tess, &mut states[1], &mut v, &f[1], p.0, p.1, p.2).expect("a step");
+            (states[1].shape.a, pull)
+        };
+        let reach = MAX_REACH * 0.5;
+        let (flung, _) = first_step(10.0, f64::INFINITY);
+        assert!(
+            flung > 2.0,
+            "the whole gap no longer flings the ball: a = {flung}"
+        );
+        let (a, pull) = first_step(10.0, reach);
+        assert!(
+            (a - 0.5).abs() < 0.15,
+            "one step took the ball's scale to {a}"
+        );
+        assert!(
+            pull <= (1.0 + rate) * 775.0 * reach * (1.0 + 1e-12),
+            "pull {pull}"
+        );
+        // Within reach (a gap of 0.2) the clamp changes nothing.
+        assert_eq!(first_step(1.2, reach), first_step(1.2, f64::INFINITY));
     }
 }

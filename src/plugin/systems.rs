@@ -7,7 +7,7 @@ use crate::model::dynamics::{step, step_prepared};
 use crate::model::fit::{Stage, StageClock, max_motion};
 use crate::model::forces::range::Robust;
 use crate::model::inertia::{self, Velocity};
-use crate::model::joint::{JointLoad, MULTIPLIER_RATE, inertial_multiplier_rate};
+use crate::model::joint::{JointLoad, MAX_REACH, MULTIPLIER_RATE, inertial_multiplier_rate};
 use crate::model::superquadric::SuperquadricParams;
 use bevy::math::DVec3;
 use bevy::prelude::*;
@@ -240,6 +240,7 @@ pub fn joint_forces(
         &SimControl,
         &mut Scratch,
         &ModelSettings,
+        &GlobalShape,
         Option<&Inertia>,
     )>,
 ) {
@@ -250,8 +251,8 @@ pub fn joint_forces(
         }
         let Ok(
             [
-                (fem_a, control_a, mut a, settings_a, inertia_a),
-                (fem_b, control_b, mut b, settings_b, inertia_b),
+                (fem_a, control_a, mut a, settings_a, shape_a, inertia_a),
+                (fem_b, control_b, mut b, settings_b, shape_b, inertia_b),
             ],
         ) = models.get_many_mut([pj.a, pj.b])
         else {
@@ -274,8 +275,10 @@ pub fn joint_forces(
         {
             continue;
         }
+        let reach = MAX_REACH * shape_a.a.min(shape_b.a);
         pj.gap = pj.joint.apply(
             rate,
+            reach,
             (
                 tess_a,
                 &a.node_x,
