@@ -69,7 +69,7 @@ fn register_gizmos(app: &mut App) {
 }
 
 /// The gizmo system.
-pub fn draw_debug(
+pub(crate) fn draw_debug(
     mut gizmos: Gizmos<DeformableSqGizmos>,
     config: Res<DebugRenderConfig>,
     models: Query<(

@@ -14,8 +14,12 @@
 //! [`MouseSpringSystems`]. Set [`MouseSpringSettings::enabled`] to false while the app uses the
 //! left button for something else (placing parts, picking joint ends).
 
-use crate::plugin::{FemMesh, FitDriver, GlobalShape, ModelSettings, Scratch, SimControl};
+use crate::plugin::{
+    FemMesh, FitDriver, GlobalShape, LocalDofs, ModelSettings, RigidState, SimControl,
+    world_positions,
+};
 use crate::plugin::{Spring, SpringForces};
+use bevy::math::DVec3;
 use bevy::picking::events::{DragEnd, Pointer, Press, Release};
 use bevy::picking::pointer::PointerButton;
 use bevy::prelude::*;
@@ -90,8 +94,7 @@ fn grab(
     mut mouse: ResMut<MouseSpring>,
     mut models: Query<(
         &FemMesh,
-        &Scratch,
-        &GlobalShape,
+        (&RigidState, &GlobalShape, &LocalDofs),
         &ModelSettings,
         &mut SimControl,
         Option<&mut SpringForces>,
@@ -103,17 +106,19 @@ fn grab(
         return;
     }
     let entity = press.entity;
-    let Ok((fem, scratch, shape, model_settings, mut control, springs)) = models.get_mut(entity)
+    let Ok((fem, (rigid, shape, local), model_settings, mut control, springs)) =
+        models.get_mut(entity)
     else {
         return;
     };
     let (Some(tess), Some(hit)) = (fem.get(), press.hit.position) else {
         return;
     };
+    let mut nodes = Vec::new();
+    world_positions(tess, rigid, shape, local, &mut nodes);
     let size = shape.a.max(1e-3);
     let stiffness = Spring::mouse_stiffness(model_settings, size);
-    let Some(spring) = Spring::grab(tess, scratch.node_positions(), hit.as_dvec3(), stiffness)
-    else {
+    let Some(spring) = Spring::grab(tess, &nodes, hit.as_dvec3(), stiffness) else {
         return;
     };
     let index = match springs {
@@ -144,7 +149,12 @@ fn drag_spring(
     mouse: Res<MouseSpring>,
     window: Single<&Window, With<PrimaryWindow>>,
     camera: Single<(&Camera, &GlobalTransform), With<Camera3d>>,
-    mut models: Query<(&FemMesh, &Scratch, &mut SpringForces)>,
+    mut models: Query<(
+        &FemMesh,
+        (&RigidState, &GlobalShape, &LocalDofs),
+        &mut SpringForces,
+    )>,
+    mut nodes: Local<Vec<DVec3>>,
 ) {
     let Some(model) = mouse.model else { return };
     let Some(cursor) = window.cursor_position() else {
@@ -159,12 +169,13 @@ fn drag_spring(
         return;
     };
     let target = ray.get_point(t).as_dvec3();
-    let Ok((fem, scratch, mut springs)) = models.get_mut(model) else {
+    let Ok((fem, (rigid, shape, local), mut springs)) = models.get_mut(model) else {
         return;
     };
     let Some(tess) = fem.get() else { return };
     if let Some(spring) = springs.0.get_mut(mouse.spring) {
-        spring.pull_towards(tess, scratch.node_positions(), target, mouse.scale);
+        world_positions(tess, rigid, shape, local, &mut nodes);
+        spring.pull_towards(tess, &nodes, target, mouse.scale);
     }
 }
 

@@ -612,7 +612,7 @@ fn a_model_with_mass_dragged_far_away_stays_finite_too() {
 /// away for 600 steps: no step moves a node more than 2, the membrane does not tear, and the
 /// grabbed point follows steadily.
 fn drag_far_away(with_mass: bool) {
-    use bevy_deformable_sq::plugin::Scratch;
+    use bevy_deformable_sq::plugin::model_node_positions;
     let mut app = app();
     let e = app
         .world_mut()
@@ -632,7 +632,7 @@ fn drag_far_away(with_mass: bool) {
     let (tess, x0) = {
         let w = app.world();
         let tess = w.get::<FemMesh>(e).unwrap().get().unwrap().clone();
-        (tess, w.get::<Scratch>(e).unwrap().node_positions().to_vec())
+        (tess, model_node_positions(w, e).unwrap())
     };
     let hit = DVec3::new(0.8, 0.0, 0.0);
     let settings = *app.world().get::<ModelSettings>(e).unwrap();
@@ -649,8 +649,8 @@ fn drag_far_away(with_mass: bool) {
     let mut grabbed_x = Vec::new();
     for _ in 0..600 {
         {
+            let x = model_node_positions(app.world(), e).unwrap();
             let mut entity = app.world_mut().entity_mut(e);
-            let x = entity.get::<Scratch>().unwrap().node_positions().to_vec();
             let mut springs = entity.get_mut::<SpringForces>().unwrap();
             springs.0[0].pull_towards(&tess, &x, target, 0.8);
             let at = tess
@@ -663,7 +663,7 @@ fn drag_far_away(with_mass: bool) {
         let w = app.world();
         let c = w.get::<SimControl>(e).unwrap();
         assert!(!c.frozen, "{:?}", c.error);
-        let after = w.get::<Scratch>(e).unwrap().node_positions().to_vec();
+        let after = model_node_positions(w, e).unwrap();
         let motion = before
             .iter()
             .zip(&after)

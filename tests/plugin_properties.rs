@@ -12,7 +12,7 @@ use bevy_deformable_sq::model::joint::JointEnd;
 use bevy_deformable_sq::model::superquadric::{
     LEAST_EPSILON, MAX_EPSILON, MIN_ASPECT, SuperquadricParams,
 };
-use bevy_deformable_sq::plugin::Scratch;
+use bevy_deformable_sq::plugin::model_node_positions;
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
 use glam::{DQuat, DVec3};
@@ -233,7 +233,7 @@ fn check_states(
         if let Some(i) = w.get::<Inertia>(e) {
             prop_assert!(i.velocity.is_finite(), "{e}: velocity");
         }
-        let nodes = w.get::<Scratch>(e).expect("scratch").node_positions();
+        let nodes = model_node_positions(w, e).expect("a built mesh");
         prop_assert!(nodes.iter().all(|x| x.is_finite()), "{e}: nodes");
     }
     let mut joints = app.world_mut().query::<&PartJoint>();
@@ -244,11 +244,7 @@ fn check_states(
 }
 
 fn node_positions(app: &App, e: Entity) -> Vec<DVec3> {
-    app.world()
-        .get::<Scratch>(e)
-        .expect("scratch")
-        .node_positions()
-        .to_vec()
+    model_node_positions(app.world(), e).expect("a built mesh")
 }
 
 fn tessellation(app: &App, e: Entity) -> Option<std::sync::Arc<Tessellation>> {

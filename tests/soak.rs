@@ -7,7 +7,7 @@
 use bevy::asset::AssetPlugin;
 use bevy::prelude::*;
 use bevy_deformable_sq::model::fem::Tessellation;
-use bevy_deformable_sq::plugin::Scratch;
+use bevy_deformable_sq::plugin::model_node_positions;
 use bevy_deformable_sq::prelude::*;
 use glam::DVec3;
 use std::path::Path;
@@ -50,11 +50,7 @@ struct Drag {
 /// A part's world node positions, its tessellation and its scale a.
 fn part(app: &App, e: Entity) -> (Vec<DVec3>, Option<Arc<Tessellation>>, f64) {
     let w = app.world();
-    let x = w
-        .get::<Scratch>(e)
-        .expect("scratch")
-        .node_positions()
-        .to_vec();
+    let x = model_node_positions(w, e).expect("a built mesh");
     let tess = w.get::<FemMesh>(e).and_then(|m| m.get().cloned());
     (x, tess, w.get::<GlobalShape>(e).expect("shape").a)
 }

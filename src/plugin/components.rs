@@ -596,7 +596,7 @@ impl FitDriver {
 /// Per-model buffers reused every step (forces, workspace, node positions, the image forces'
 /// buffers) and the state at spawn for reset.
 #[derive(Component, Clone, Debug, Default)]
-pub struct Scratch {
+pub(crate) struct Scratch {
     pub(crate) forces: NodalForces,
     pub(crate) workspace: Workspace,
     pub(crate) node_x: Vec<DVec3>,
@@ -619,7 +619,7 @@ pub(crate) type StateTicks = [bevy::ecs::change_detection::Tick; 4];
 /// A model's mesh and state as the systems that only read them see them, with their change
 /// ticks (`Scratch::current_positions`).
 #[derive(bevy::ecs::query::QueryData)]
-pub struct ModelStateRef {
+pub(crate) struct ModelStateRef {
     /// The model's entity.
     pub entity: Entity,
     /// Its mesh.
@@ -661,7 +661,7 @@ pub(crate) fn state_ticks(
 
 impl Scratch {
     /// World node positions as of the last step.
-    pub fn node_positions(&self) -> &[DVec3] {
+    pub(crate) fn node_positions(&self) -> &[DVec3] {
         &self.node_x
     }
 
@@ -690,6 +690,16 @@ impl Scratch {
         }
         *which(self) = out;
     }
+}
+
+/// The world node positions of `entity`'s model as its components stand now
+/// ([`world_positions`]); `None` when it is not a model or its mesh is not built yet.
+pub fn model_node_positions(world: &World, entity: Entity) -> Option<Vec<DVec3>> {
+    let model = world.get_entity(entity).ok()?;
+    let tess = model.get::<FemMesh>()?.get()?;
+    let mut out = Vec::new();
+    world_positions(tess, model.get()?, model.get()?, model.get()?, &mut out);
+    Some(out)
 }
 
 /// World node positions x_i = c + R (T(s_i) + d_i) of a model, from its components.

@@ -11,7 +11,7 @@ pub mod components;
 pub mod headless;
 mod messages;
 pub mod scene;
-pub mod systems;
+pub(crate) mod systems;
 
 pub use components::*;
 pub use messages::{FitFinished, ModelFrozen};
