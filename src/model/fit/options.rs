@@ -71,7 +71,7 @@ pub struct FitOptions {
     /// Initial pose and shape.
     pub init: Initialization,
     /// How the global DOFs come to rest: the paper's dynamics, or for a pure superquadric the
-    /// Levenberg–Marquardt solve of [`super::lm`] ([`Solver`]).
+    /// Levenberg–Marquardt solve of [`crate::model::lm`] ([`Solver`]).
     pub solver: Solver,
 }
 
