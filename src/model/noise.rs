@@ -16,7 +16,7 @@
 //! scale whatever the data's units; only the noise relative to that scale matters. The membrane
 //! must not follow the noise: [`stiffness_for_noise`] keeps the paper's w1 = 0.1 on clean data and
 //! raises w1 in proportion to the relative noise above a threshold, a rule fitted to the sweep of
-//! `examples/noise.rs` (docs/results.md, "Noise and the membrane's stiffness").
+//! `benches/noise.rs` (docs/results.md, "Noise and the membrane's stiffness").
 
 use super::init::{Moments, Normalization, moments};
 use super::linalg::{cholesky_solve, symmetric_eigen3};
@@ -151,7 +151,7 @@ pub const MAX_W1: f64 = 1.0;
 
 /// Membrane stiffness (w0, w1) for a cloud whose noise along the normal is `relative` times its
 /// RMS radius: w1 = [`REFERENCE_W1`] · (relative / [`REFERENCE_NOISE`])^[`NOISE_EXPONENT`], clamped
-/// to [[`MIN_W1`], [`MAX_W1`]], and w0 = w1 / 100. Fitted to `examples/noise.rs`'s sweep (a ridged
+/// to [[`MIN_W1`], [`MAX_W1`]], and w0 = w1 / 100. Fitted to `benches/noise.rs`'s sweep (a ridged
 /// egg, 500–8000 points, noise 0–8 % of the RMS radius), where it lands within 5 % of the best
 /// swept w1's error at every noise level; a non-finite `relative` counts as clean.
 pub fn stiffness_for_noise(relative: f64) -> (f64, f64) {
@@ -223,7 +223,7 @@ mod tests {
         use crate::model::dynamics::DynamicsParams;
         use crate::model::fit::{FitOptions, fit, point_distances};
         use crate::synthetic::{Rng, ridged_egg};
-        // The ridged egg, 1500 points with noise 2 % of the RMS radius (examples/noise.rs).
+        // The ridged egg, 1500 points with noise 2 % of the RMS radius (benches/noise.rs).
         let clean = ridged_egg(1500, 2);
         let scale = Normalization::of(&clean).scale;
         let mut rng = Rng::new(3);

@@ -67,8 +67,8 @@ pub const REFINE_MIN_PROGRESS: f64 = 1e-3;
 /// global stage (both by the chosen fit's inlier-weighted mean distance,
 /// [`weighted_mean_distance`]): the two stages ran on the same forces, so the comparison is
 /// like for like, and a candidate that placed much worse has not been seen to refine past the
-/// chosen fit. On the eight shipped clouds and the 20 ground-truth clouds (`cargo run --release
-/// --example ground_truth`) the candidates that won did so from ratios of 0.39 to 1.89, and
+/// chosen fit. On the eight shipped clouds and the 20 ground-truth clouds (`cargo bench --bench
+/// ground_truth`) the candidates that won did so from ratios of 0.39 to 1.89, and
 /// those that lost reached 4.5; at 2.5 the fits and the ground-truth table are what refining
 /// every candidate gives, and EMS's `partial_pointCloud_example_1`, `_2` and `_3` skip
 /// refinements that took 25 %, 31 % and 40 % of their steps.

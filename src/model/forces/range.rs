@@ -238,7 +238,7 @@ pub const EM_ITERATIONS: usize = 3;
 /// above the inliers' own spread on `noisy_pointCloud_example_1` (its EM σ is 4.5–9.7·10⁻⁴ of
 /// the diagonal) and let `partial_3`'s few stray points bend the fit (median distance 6.3·10⁻⁵
 /// of the diagonal; 6·10⁻⁶ at 3·10⁻⁴, EMS 5·10⁻⁶). Measured with `fit FILE --global-only` on
-/// the eight shipped clouds and `cargo run --release --example ground_truth` (its table does not
+/// the eight shipped clouds and `cargo bench --bench ground_truth` (its table does not
 /// change).
 pub const SIGMA_FLOOR: f64 = 3e-4;
 

@@ -3,7 +3,7 @@
 //! of the largest semi-axis, 20 % outliers).
 //!
 //! ```text
-//! cargo run --release --example ground_truth [-- --clouds N] [--export DIR]
+//! cargo bench --bench ground_truth [-- --clouds N] [--export DIR]
 //! ```
 //!
 //! For each cloud, a global-only fit with the paper's springs, one with `FitOptions::robust`
@@ -58,7 +58,8 @@ fn write_ply(path: &PathBuf, points: &[glam::DVec3]) -> std::io::Result<()> {
 fn main() -> ExitCode {
     let mut clouds = 20u64;
     let mut export: Option<PathBuf> = None;
-    let mut args = std::env::args().skip(1);
+    // `cargo bench` passes `--bench` to a bench without the test harness.
+    let mut args = std::env::args().skip(1).filter(|a| a != "--bench");
     while let Some(a) = args.next() {
         match (a.as_str(), args.next()) {
             ("--clouds", Some(n)) => match n.parse() {

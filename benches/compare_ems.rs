@@ -3,7 +3,7 @@
 //! `assets/data/ATTRIBUTION.md`) and of ours, and the recovered parameters.
 //!
 //! ```text
-//! cargo run --release --example compare_ems
+//! cargo bench --bench compare_ems
 //! ```
 //!
 //! Residuals: mean / p95 distance of all the cloud's points (outliers included) to the fitted

@@ -2,7 +2,7 @@
 //! egg with five ridges round its axis, which no superquadric has) at several noise levels and
 //! membrane stiffnesses, and scores each fit by how far the clean surface lies from it.
 //!
-//! `cargo run --release --example noise [-- --points N]`
+//! `cargo bench --bench noise [-- --points N]`
 //!
 //! Columns: the noise added (σ per coordinate over the cloud's RMS radius), the noise that
 //! `model::noise::estimate_noise` finds from the points alone, the error of a pure superquadric
