@@ -6,6 +6,8 @@
 //! cargo bench --bench compare_ems
 //! ```
 //!
+//! `cargo test` runs it too, and fails when a figure is not a finite number.
+//!
 //! Residuals: mean / p95 distance of all the cloud's points (outliers included) to the fitted
 //! surface, as fractions of the cloud's bounding-box diagonal (`model::fit::residuals`). Pure
 //! superquadrics (EMS's and our global-only fits) are tessellated at k = 151 (22 803 nodes) to
@@ -25,6 +27,10 @@ use std::process::ExitCode;
 
 #[path = "common/ems.rs"]
 mod ems;
+// It runs whole under `cargo test` too, so it has no use for `mode::benched`.
+#[allow(dead_code)]
+#[path = "common/mode.rs"]
+mod mode;
 
 /// ε1, ε2 and the semi-axes largest first.
 fn describe(q: &SuperquadricParams) -> String {
@@ -91,20 +97,19 @@ fn main() -> ExitCode {
             eprintln!("a fit of {} failed", ems.cloud);
             return ExitCode::from(2);
         };
+        let ours =
+            [&global, &robust].map(|r| exact(r.state.translation, r.state.rotation, r.state.shape));
+        let figures = [&theirs, &ours[0], &ours[1], &local.residuals].map(|r| [r.mean, r.p95]);
+        if let Err(e) = mode::check_finite(&ems.cloud, figures.as_flattened()) {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
         println!(
             "| {} | {} | {} | {} | {} | {} | {} | {} |",
             ems.cloud,
             pair(&theirs),
-            pair(&exact(
-                global.state.translation,
-                global.state.rotation,
-                global.state.shape
-            )),
-            pair(&exact(
-                robust.state.translation,
-                robust.state.rotation,
-                robust.state.shape
-            )),
+            pair(&ours[0]),
+            pair(&ours[1]),
             pair(&local.residuals),
             describe(&shape),
             describe(&robust.state.shape),

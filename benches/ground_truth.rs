@@ -6,6 +6,9 @@
 //! cargo bench --bench ground_truth [-- --clouds N] [--export DIR]
 //! ```
 //!
+//! `cargo test` runs it on two clouds, ignoring any arguments, and fails when a figure is not a
+//! finite number.
+//!
 //! For each cloud, a global-only fit with the paper's springs, one with `FitOptions::robust`
 //! through the dynamics (`dsq fit --robust --solver dynamics`) and one through the
 //! Levenberg–Marquardt solver (`dsq fit --global-only`'s default) are scored by `synthetic::ParameterErrors`: mean relative error
@@ -25,6 +28,8 @@ use std::process::ExitCode;
 
 #[path = "common/ems.rs"]
 mod ems;
+#[path = "common/mode.rs"]
+mod mode;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -56,10 +61,14 @@ fn write_ply(path: &PathBuf, points: &[glam::DVec3]) -> std::io::Result<()> {
 }
 
 fn main() -> ExitCode {
-    let mut clouds = 20u64;
+    let benched = mode::benched();
+    let mut clouds = if benched { 20u64 } else { 2 };
     let mut export: Option<PathBuf> = None;
-    // `cargo bench` passes `--bench` to a bench without the test harness.
-    let mut args = std::env::args().skip(1).filter(|a| a != "--bench");
+    // Under `cargo test` the arguments are the test runner's (a filter), not ours.
+    let mut args = std::env::args()
+        .skip(1)
+        .filter(|a| a != "--bench")
+        .filter(|_| benched);
     while let Some(a) = args.next() {
         match (a.as_str(), args.next()) {
             ("--clouds", Some(n)) => match n.parse() {
@@ -159,6 +168,15 @@ fn main() -> ExitCode {
                 return ExitCode::from(2);
             }
         };
+        let figures: Vec<f64> = [p, r, l]
+            .into_iter()
+            .flat_map(|e| [e.axes, e.epsilon, e.translation, e.rotation_deg])
+            .chain([pure, paper_local, ours_local])
+            .collect();
+        if let Err(e) = mode::check_finite(&format!("cloud {seed}"), &figures) {
+            eprintln!("{e}");
+            return ExitCode::FAILURE;
+        }
         local_rows.push(format!(
             "| {seed} | {pure:.4} | {paper_local:.4} ({paper_steps}) | {ours_local:.4} ({ours_steps}) | {:.1} |",
             pure / ours_local
