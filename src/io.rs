@@ -186,18 +186,25 @@ fn ply_message(raw: &str) -> String {
     }
 }
 
-fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
-    use ply_rs_bw::parser::Parser;
-    use ply_rs_bw::ply::{DefaultElement, Property};
-    let parser = Parser::<DefaultElement>::new();
-    let ply = parser
-        .read_ply(&mut std::io::Cursor::new(bytes))
-        .map_err(|e| err(path, ply_message(&e.to_string())))?;
-    let Some(vertices) = ply.payload.get("vertex") else {
-        return Err(err(path, "has no `vertex` element"));
-    };
-    let scalar = |p: &Property| -> Option<f64> {
-        Some(match *p {
+/// A PLY vertex as the parser reads it: its x, y and z when they are scalars, every other
+/// property ignored (no map a vertex, so a million-point cloud reads in tens of megabytes).
+struct PlyVertex([Option<f64>; 3]);
+
+impl ply_rs_bw::ply::PropertyAccess for PlyVertex {
+    fn new() -> Self {
+        Self([None; 3])
+    }
+
+    fn set_property(
+        &mut self,
+        name: &str,
+        property: ply_rs_bw::ply::Property,
+    ) -> ply_rs_bw::ply::PropertyAccessResult {
+        use ply_rs_bw::ply::{Property, PropertyAccessResult};
+        let Some(k) = ["x", "y", "z"].iter().position(|n| *n == name) else {
+            return PropertyAccessResult::Ignored;
+        };
+        let value = match property {
             Property::Char(v) => v as f64,
             Property::UChar(v) => v as f64,
             Property::Short(v) => v as f64,
@@ -206,14 +213,54 @@ fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
             Property::UInt(v) => v as f64,
             Property::Float(v) => v as f64,
             Property::Double(v) => v,
-            _ => return None,
-        })
+            _ => return PropertyAccessResult::Ignored,
+        };
+        self.0[k] = Some(value);
+        PropertyAccessResult::Set
+    }
+}
+
+/// An element of a PLY file that is not the vertices: read past, kept nowhere.
+struct PlySkipped;
+
+impl ply_rs_bw::ply::PropertyAccess for PlySkipped {
+    fn new() -> Self {
+        Self
+    }
+}
+
+fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
+    use ply_rs_bw::parser::{Parser, Reader};
+    let bad = |e: ply_rs_bw::parser::ParseError| err(path, ply_message(&e.to_string()));
+    let mut reader = Reader::new(std::io::Cursor::new(bytes));
+    let header = Parser::<PlySkipped>::new()
+        .read_header(&mut reader)
+        .map_err(bad)?;
+    let mut vertices = None;
+    // Elements are read in the header's order; the vertices are usually first, and nothing after
+    // them is needed.
+    for def in header.elements.values() {
+        if def.name == "vertex" {
+            let parser = Parser::<PlyVertex>::new();
+            vertices = Some(
+                parser
+                    .read_payload_for_element(&mut reader, def, &header)
+                    .map_err(bad)?,
+            );
+            break;
+        }
+        Parser::<PlySkipped>::new()
+            .read_payload_for_element(&mut reader, def, &header)
+            .map_err(bad)?;
+    }
+    let Some(vertices) = vertices else {
+        return Err(err(path, "has no `vertex` element"));
     };
     let mut points = Vec::with_capacity(vertices.len());
     for (i, v) in vertices.iter().enumerate() {
         let mut c = [0.0; 3];
         for (k, name) in ["x", "y", "z"].iter().enumerate() {
-            c[k] = v.get(*name).and_then(scalar).ok_or_else(|| {
+            c[k] = v.0[k].ok_or_else(|| {
                 err(
                     path,
                     format!("vertex {}: no scalar property `{name}`", i + 1),
@@ -495,6 +542,22 @@ mod tests {
             );
             assert!(!m.contains('\n') && m.len() < 200, "{m}");
         }
+    }
+
+    #[test]
+    fn ply_vertices_are_read_past_other_elements_and_properties() {
+        // A face element before the vertices, and normals and colours beside x, y, z.
+        let text = "ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\n\
+            element vertex 2\nproperty float nx\nproperty double x\nproperty float y\n\
+            property uchar red\nproperty int z\nend_header\n3 0 1 0\n0.5 1.25 2 255 3\n0 -1 0.5 7 -2\n";
+        let points = load_points(&temp("mixed.ply", text.as_bytes())).unwrap();
+        assert_eq!(
+            points,
+            vec![DVec3::new(1.25, 2.0, 3.0), DVec3::new(-1.0, 0.5, -2.0)]
+        );
+        let no_z = text.replace("property int z", "property int w");
+        let e = load_points(&temp("no_z.ply", no_z.as_bytes())).unwrap_err();
+        assert!(e.to_string().contains("vertex 1: no scalar property `z`"), "{e}");
     }
 
     #[test]
