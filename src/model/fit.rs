@@ -41,9 +41,11 @@ use std::num::NonZero;
 mod options;
 mod plan;
 mod residuals;
+mod solved;
 pub use options::*;
 pub use plan::*;
 pub use residuals::*;
+pub use solved::*;
 #[cfg(test)]
 mod tests;
 
@@ -516,102 +518,5 @@ pub fn fit(
         initial,
         tess,
         refinement,
-    })
-}
-
-/// True when `opts` ask for the Levenberg–Marquardt solve and the fit is one it can do: a pure
-/// superquadric without tapering or bending.
-pub fn uses_lm(opts: &FitOptions) -> bool {
-    let free = &opts.dynamics.free;
-    opts.solver == Solver::LevenbergMarquardt && opts.global_only && !free.taper && !free.bend
-}
-
-/// Most EM rounds of a Levenberg–Marquardt fit, and Levenberg–Marquardt steps in a round.
-pub const LM_ROUNDS: (u32, u32) = (50, 5);
-
-/// A round of a Levenberg–Marquardt fit that lowers its cost by less than this fraction ends it.
-pub const LM_TOLERANCE: f64 = 1e-4;
-
-/// Similarity switches a Levenberg–Marquardt fit makes at most (EMS's `MaxiSwitch`).
-pub const LM_SWITCHES: u32 = 2;
-
-/// [`fit`] by [`super::lm::solve`] from the `starts` (unit frame of `norm`, data units given),
-/// with the similarity candidates when the options ask for them and the squareness extension
-/// when they ask for the refining stage.
-fn fit_lm(
-    points: &[DVec3],
-    opts: &FitOptions,
-    norm: &Normalization,
-    unit: &[DVec3],
-    starts: &[InitialPose],
-    tess: Tessellation,
-    progress: &mut impl FnMut(&FitProgress),
-) -> Result<FitReport, FitError> {
-    let starts: Vec<InitialPose> = starts.iter().map(|s| norm.pose_to_unit(s)).collect();
-    // The outliers' box and EMS's first σ², in the first start's frame.
-    let frame = starts[0].rotation.inverse();
-    let (lo, hi) = unit.iter().fold(
-        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
-        |(lo, hi), p| (lo.min(frame * *p), hi.max(frame * *p)),
-    );
-    let extent = (hi - lo).max(DVec3::splat(1e-9));
-    let volume = extent.x * extent.y * extent.z;
-    let reach = unit
-        .iter()
-        .map(|p| p.abs().max_element())
-        .fold(0.0, f64::max);
-    let sigma2 = volume.cbrt() * reach / 100.0;
-    let diagonal = extent.length();
-    let lm = LmOptions {
-        mixture: Mixture {
-            outlier_ratio: opts.outlier_ratio,
-            outlier_density: 1.0 / volume,
-            sigma2_floor: (super::forces::range::SIGMA_FLOOR * diagonal).powi(2),
-        },
-        max_rounds: LM_ROUNDS.0,
-        steps_per_round: LM_ROUNDS.1,
-        tolerance: LM_TOLERANCE,
-        metric: Metric::Radial,
-    };
-    let switches = if opts.similarity_switch {
-        LM_SWITCHES
-    } else {
-        0
-    };
-    let solution = super::lm::solve(unit, &starts, sigma2, &lm, similarity_candidates, switches)
-        .ok_or_else(|| FitError::BadOption("no initial state to start from".into()))?;
-    let fit = &solution.fit;
-    let pose = fit.pose;
-    let mut state = ModelState::new(&tess, pose.translation, pose.rotation, pose.shape);
-    if opts.refine {
-        let weights = if fit.weights.is_empty() {
-            vec![1.0; unit.len()]
-        } else {
-            fit.weights.clone()
-        };
-        if let Some(shape) = extend_squareness(&tess, &state, unit, &weights) {
-            state.shape = shape;
-        }
-    }
-    progress(&FitProgress {
-        step: solution.iterations,
-        stage: Stage::Global,
-        max_motion: 0.0,
-        energy: fit.cost,
-        reassignments: 0,
-    });
-    let state = norm.state_to_data(&state);
-    let residuals = fit_residuals(&tess, &state, points);
-    Ok(FitReport {
-        state,
-        steps: solution.iterations,
-        global_steps: fit.iterations,
-        reassignments: 0,
-        converged: fit.converged,
-        substepped_steps: 0,
-        residuals,
-        initial: norm.pose_to_data(&tess, &solution.start),
-        tess,
-        refinement: None,
     })
 }

@@ -30,8 +30,8 @@ pub enum Paper {
 pub enum SolverArg {
     /// The paper's explicit dynamics under range springs.
     Dynamics,
-    /// Levenberg–Marquardt on the radial, then the surface distance (with --global-only, no
-    /// --taper or --bend).
+    /// Levenberg–Marquardt on the radial, then the surface distance; with local DOFs, then
+    /// implicit steps of the membrane (no --taper or --bend).
     Lm,
 }
 
@@ -104,8 +104,9 @@ pub struct FitArgs {
     /// w0 = 1e-3, w1 = 0.1) instead of the data-driven defaults.
     #[arg(long, help_heading = "Point clouds")]
     pub paper_forces: bool,
-    /// How a pure superquadric (--global-only) comes to rest: `dynamics` (the default) or
-    /// `lm`, a Levenberg–Marquardt solve in tens of iterations.
+    /// How the fit comes to rest: `dynamics` (the default: the paper's explicit steps) or `lm`
+    /// (no --taper or --bend): the superquadric solved for by Levenberg–Marquardt in tens of
+    /// iterations and, with local DOFs, the membrane brought to rest by implicit steps.
     #[arg(long, value_enum, help_heading = "Point clouds")]
     pub solver: Option<SolverArg>,
     /// Point-to-plane springs in the global stage.
@@ -432,10 +433,8 @@ impl FitArgs {
             Some(_) if !is_file => {
                 return Err("--solver acts on POINTS fits".into());
             }
-            Some(SolverArg::Lm)
-                if !o.global_only || o.dynamics.free.taper || o.dynamics.free.bend =>
-            {
-                return Err("--solver lm needs --global-only and no --taper or --bend".into());
+            Some(SolverArg::Lm) if o.dynamics.free.taper || o.dynamics.free.bend => {
+                return Err("--solver lm takes no --taper or --bend".into());
             }
             Some(SolverArg::Lm) => o.solver = Solver::LevenbergMarquardt,
             Some(SolverArg::Dynamics) | None => {}

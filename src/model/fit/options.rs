@@ -70,8 +70,9 @@ pub struct FitOptions {
     pub similarity_switch: bool,
     /// Initial pose and shape.
     pub init: Initialization,
-    /// How the global DOFs come to rest: the paper's dynamics, or for a pure superquadric the
-    /// Levenberg–Marquardt solve of [`crate::model::lm`] ([`Solver`]).
+    /// How the fit comes to rest: the paper's dynamics, or the Levenberg–Marquardt solve of
+    /// [`crate::model::lm`] followed, with local DOFs, by the placing and global stages and the
+    /// implicit joint stage of [`implicit_joint_options`] ([`Solver`]).
     pub solver: Solver,
 }
 
