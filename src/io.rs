@@ -557,7 +557,10 @@ mod tests {
         );
         let no_z = text.replace("property int z", "property int w");
         let e = load_points(&temp("no_z.ply", no_z.as_bytes())).unwrap_err();
-        assert!(e.to_string().contains("vertex 1: no scalar property `z`"), "{e}");
+        assert!(
+            e.to_string().contains("vertex 1: no scalar property `z`"),
+            "{e}"
+        );
     }
 
     #[test]
