@@ -301,7 +301,7 @@ fn run_simulation(world: &mut World) {
 fn apply_display(
     sandbox: Res<Sandbox>,
     mut applied: Local<Option<[bool; 3]>>,
-    new: Query<(), Or<(Added<ScenePart>, Added<SceneImage>)>>,
+    new_parts: Query<(), Added<ScenePart>>,
     parts: Query<Entity, With<ScenePart>>,
     mut images: Query<(&mut SceneImage, &mut Visibility)>,
     mut commands: Commands,
@@ -311,7 +311,9 @@ fn apply_display(
         sandbox.show_images,
         sandbox.show_potential,
     ];
-    if *applied == Some(now) && new.is_empty() {
+    // (Reading `is_added` through `iter_mut` marks nothing changed.)
+    let new = !new_parts.is_empty() || images.iter_mut().any(|(image, _)| image.is_added());
+    if *applied == Some(now) && !new {
         return;
     }
     *applied = Some(now);
