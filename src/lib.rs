@@ -17,6 +17,28 @@
 //! brings in what an app needs. Without Bevy, [`model::fit::fit`] fits a point cloud in one call,
 //! and the `dsq` binary does the same from the command line.
 //!
+//! ## The plugins
+//!
+//! `DeformableSqPlugins` is a plugin group; each member can be disabled or replaced:
+//!
+//! | plugin | what it does |
+//! |---|---|
+//! | `DeformableSqPlugin` | the simulation: the systems of `DeformableSqSystems` over the components below |
+//! | `render::DeformableSqRenderPlugin` | a dynamic `Mesh3d` per model, its vertices written in place each frame |
+//! | `plugin::scene::DeformableSqScenePlugin` | scene files (`*.dsq.ron`) as assets: parts, their data and settings |
+//! | `debug_render::DeformableSqDebugPlugin` | gizmos for data points, their springs and user springs |
+//! | `picking::MouseSpringPlugin` | press, drag and release a spring on any model |
+//! | `inspector::DeformableSqInspectorPlugin` | a window per model: sliders, switches, fit to convergence, export |
+//!
+//! ## The components
+//!
+//! A model is `GlobalShape` (a, a1..a3, ε1, ε2) and `RigidState` (translation, rotation: the
+//! global DOFs), `LocalDofs` (a displacement per node) and `FemMesh` (the tessellation they live
+//! on), with `ModelSettings` (stiffness, damping, time step, which DOFs are free). Its data is
+//! `RangeData` (points), `ImageData` (an image's potential) or `SpringForces` (springs to world
+//! anchors, the mouse's among them). `FitDriver` runs a whole fit in stages and sends
+//! `FitFinished`; `PartJoint` joins two parts; `Inertia` adds mass (second-order dynamics).
+//!
 //! ## Features
 //!
 //! | feature | default | what it adds |
