@@ -582,6 +582,17 @@ mod tests {
     }
 
     #[test]
+    fn a_spread_sample_keeps_small_clouds_whole_and_spreads_through_large_ones() {
+        let points: Vec<DVec3> = (0..1000).map(|i| DVec3::splat(i as f64)).collect();
+        assert_eq!(spread_sample(&points, 500), points);
+        let few = spread_sample(&points, 100);
+        assert_eq!(few.len(), 100);
+        assert_eq!(few[0], points[0]);
+        assert_eq!(few[99], points[990]);
+        assert!(few.windows(2).all(|w| w[1].x - w[0].x == 10.0));
+    }
+
+    #[test]
     fn the_semi_axes_stop_at_their_bound_and_the_cost_still_falls() {
         let truth = pose();
         let points = superquadric_cloud(
