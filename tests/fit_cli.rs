@@ -307,6 +307,10 @@ fn fits_parts_to_an_image_and_writes_the_overlay() {
         summary["outline_after"].as_f64().unwrap() > summary["outline_before"].as_f64().unwrap(),
         "{summary}"
     );
+    // An automatic placement says so, in the line and on stderr.
+    assert_eq!(summary["placed"], "blobs");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("Otsu") && err.contains("--part"), "{err}");
     let (w, h, _) = bevy_deformable_sq::io::load_luminance(&overlay).unwrap();
     assert_eq!((w, h), (400, 328));
     let obj = std::fs::read_to_string(&mesh).unwrap();

@@ -166,6 +166,13 @@ fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
                 path.display()
             ));
         }
+        if !args.quiet {
+            eprintln!(
+                "{}: parts placed on the largest blobs of an Otsu threshold of the image; on a \
+                 photo with a textured background they can land on it: place them with --part",
+                path.display()
+            );
+        }
         blobs
             .iter()
             .take(ia.auto_parts.max(1))
@@ -224,6 +231,7 @@ fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
     }
     let summary = serde_json::json!({
         "file": path.display().to_string(), "parts": fits.len(),
+        "placed": if ia.parts.is_empty() { "blobs" } else { "points" },
         "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
         "converged": fits.iter().all(|f| f.converged),
         "outline_before": outline_potential(&potential, &parts_on(&tess, &before)),
