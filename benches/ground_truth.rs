@@ -11,7 +11,7 @@
 //!
 //! For each cloud, a global-only fit with the paper's springs, one with `FitOptions::robust`
 //! through the dynamics (`dsq fit --robust --solver dynamics`) and one through the
-//! Levenberg–Marquardt solver (`dsq fit --global-only`'s default) are scored by `synthetic::ParameterErrors`: mean relative error
+//! Levenberg–Marquardt solver (`dsq fit --robust --global-only --solver lm`) are scored by `synthetic::ParameterErrors`: mean relative error
 //! of the semi-axes, mean error of ε1 and ε2, translation error over the largest semi-axis and
 //! the rotation error in degrees (all after matching the axes). Prints a Markdown table and the
 //! medians. `--export DIR` also writes each cloud as `DIR/cloud_N.ply` (ASCII) and its truth as

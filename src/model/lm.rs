@@ -156,7 +156,9 @@ pub fn lm_step(
     cost: f64,
     points: &[DVec3],
     weights: &[f64],
-    (lambda, floor, max_semi_axis): (&mut f64, f64, f64),
+    lambda: &mut f64,
+    floor: f64,
+    max_semi_axis: f64,
 ) -> Option<(InitialPose, f64)> {
     let (mut jtj, jtr) = normal_equations(metric, pose, points, weights);
     for a in 0..NUM_UNKNOWNS {
@@ -383,7 +385,9 @@ pub fn fit_em(points: &[DVec3], start: &InitialPose, sigma2: f64, opts: &LmOptio
                 cost,
                 points,
                 &fit.weights,
-                (&mut lambda, floor, opts.max_semi_axis),
+                &mut lambda,
+                floor,
+                opts.max_semi_axis,
             ) else {
                 break;
             };
@@ -645,7 +649,9 @@ mod tests {
                 cost,
                 &points,
                 &[],
-                (&mut lambda, 1e-12, f64::INFINITY),
+                &mut lambda,
+                1e-12,
+                f64::INFINITY,
             ) else {
                 break;
             };
