@@ -1,11 +1,17 @@
 //! The sandbox in a real renderer: run it under Xvfb with Mesa's CPU Vulkan driver, drag the
 //! cylinder with the (scripted) mouse, save a screenshot, and check that the drag pulled the
 //! cylinder and that the models are in the picture (their part colours where the parts are, not
-//! a blank or black frame). Needs `xvfb-run` and a Vulkan driver; CI (`.ci/run`) installs them and
+//! a blank or black frame). Needs `Xvfb` and a Vulkan driver; CI (`.ci/run`) installs them and
 //! sets `BDSQ_RENDER_TEST=1`, which makes their absence a failure rather than a skip.
+//!
+//! Each test starts its own Xvfb with `-displayfd` (the server picks a free display, so tests in
+//! parallel never race for one) and runs the sandbox on it directly. `xvfb-run` is not used: it
+//! replaces the program's exit status with its own when its clean-up fails (exit 5), which made
+//! the exit-code test flaky.
 
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::{Child, Command, Stdio};
 
 fn example(name: &str) -> PathBuf {
     let exe = std::env::current_exe().unwrap();
@@ -25,29 +31,87 @@ fn chroma(c: [f32; 3]) -> [f32; 3] {
 fn renderer_available() -> bool {
     let required = std::env::var("BDSQ_RENDER_TEST").is_ok_and(|v| v == "1");
     let has_xvfb = Command::new("sh")
-        .args(["-c", "command -v xvfb-run"])
+        .args(["-c", "command -v Xvfb"])
         .output()
         .is_ok_and(|o| o.status.success());
     if !has_xvfb {
-        assert!(!required, "BDSQ_RENDER_TEST=1 but xvfb-run is missing");
-        eprintln!("skipped: no xvfb-run (install xvfb and mesa-vulkan-drivers to run this test)");
+        assert!(!required, "BDSQ_RENDER_TEST=1 but Xvfb is missing");
+        eprintln!("skipped: no Xvfb (install xvfb and mesa-vulkan-drivers to run this test)");
     }
     has_xvfb
 }
 
-/// The sandbox under Xvfb with `args`, started in `dir`, killed after `seconds`.
-fn sandbox_in(dir: &Path, seconds: u32, args: &[&str]) -> std::process::Output {
-    Command::new("timeout")
-        .arg(seconds.to_string())
-        .args(["xvfb-run", "-a", "-s", "-screen 0 1280x720x24"])
+/// An Xvfb server of this test's own, stopped when dropped.
+struct Display {
+    server: Child,
+    /// The `DISPLAY` value, e.g. `:3`.
+    name: String,
+}
+
+impl Display {
+    /// Starts Xvfb at 1280×720 on a display it picks, and waits until it takes connections.
+    fn start() -> Display {
+        let mut server = Command::new("Xvfb")
+            .args([
+                "-displayfd",
+                "1",
+                "-screen",
+                "0",
+                "1280x720x24",
+                "-nolisten",
+                "tcp",
+            ])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start Xvfb");
+        let mut line = String::new();
+        let read =
+            BufReader::new(server.stdout.take().expect("Xvfb's stdout")).read_line(&mut line);
+        let number = line.trim();
+        if read.is_err() || number.is_empty() {
+            let _ = server.kill();
+            panic!("Xvfb did not report a display number ({read:?})");
+        }
+        let name = format!(":{number}");
+        Display { server, name }
+    }
+}
+
+impl Drop for Display {
+    fn drop(&mut self) {
+        let _ = self.server.kill();
+        let _ = self.server.wait();
+    }
+}
+
+/// The sandbox on a fresh Xvfb with `args`, started in `dir` with `envs`, killed after `seconds`.
+fn sandbox(dir: &Path, seconds: u32, args: &[&str], envs: &[(&str, &str)]) -> std::process::Output {
+    let display = Display::start();
+    let runtime =
+        std::env::temp_dir().join(format!("bdsq-xdg-{}{}", std::process::id(), display.name));
+    let _ = std::fs::create_dir_all(&runtime);
+    let mut cmd = Command::new("timeout");
+    cmd.arg(seconds.to_string())
         .arg(example("sandbox"))
         .args(args)
         .current_dir(dir)
         .env_remove("BEVY_ASSET_ROOT")
         .env_remove("CARGO_MANIFEST_DIR")
-        .env("WGPU_BACKEND", "vulkan")
-        .output()
-        .expect("run the sandbox")
+        .env("DISPLAY", &display.name)
+        .env("XDG_RUNTIME_DIR", &runtime)
+        .env("WGPU_BACKEND", "vulkan");
+    for (k, v) in envs {
+        cmd.env(k, v);
+    }
+    let out = cmd.output().expect("run the sandbox");
+    let _ = std::fs::remove_dir_all(&runtime);
+    out
+}
+
+/// The sandbox under Xvfb with `args`, started in `dir`, killed after `seconds`.
+fn sandbox_in(dir: &Path, seconds: u32, args: &[&str]) -> std::process::Output {
+    sandbox(dir, seconds, args, &[])
 }
 
 /// Started from another folder, not through cargo, the sandbox finds the crate's assets, says
@@ -118,16 +182,20 @@ fn the_sandbox_renders_its_models() {
     }
     let out = std::env::temp_dir().join(format!("bdsq-sandbox-{}.png", std::process::id()));
     let _ = std::fs::remove_file(&out);
-    let status = Command::new("timeout")
-        .args(["600", "xvfb-run", "-a", "-s", "-screen 0 1280x720x24"])
-        .arg(example("sandbox"))
-        .args(["scenes/sandbox.dsq.ron", "--demo-drag", "--screenshot"])
-        .arg(&out)
-        .args(["--exit-after-steps", "160"])
-        .env("BEVY_ASSET_ROOT", env!("CARGO_MANIFEST_DIR"))
-        .env("WGPU_BACKEND", "vulkan")
-        .output()
-        .expect("run the sandbox");
+    let shot = out.display().to_string();
+    let status = sandbox(
+        &std::env::temp_dir(),
+        600,
+        &[
+            "scenes/sandbox.dsq.ron",
+            "--demo-drag",
+            "--screenshot",
+            &shot,
+            "--exit-after-steps",
+            "160",
+        ],
+        &[("BEVY_ASSET_ROOT", env!("CARGO_MANIFEST_DIR"))],
+    );
     assert!(
         status.status.success() && out.exists(),
         "the sandbox did not save a screenshot: {}\n{}",
