@@ -190,32 +190,66 @@ impl Default for Banana {
 }
 
 impl Banana {
+    /// A tube of half-length `half` (along its axis) whose axis turns through `turn_deg` degrees
+    /// from end to end, of middle radius `radius` and taper `taper`.
+    pub fn bent(half: f64, turn_deg: f64, radius: f64, taper: f64) -> Self {
+        let half_angle = 0.5 * turn_deg.to_radians();
+        Self {
+            arc_radius: half / half_angle,
+            half_angle,
+            radius,
+            taper,
+        }
+    }
+
+    /// A straight tube of half-length `half` (a truncated cone when `taper` ≠ 0; a cone when it is
+    /// 1): a banana whose arc turns through 0.01°.
+    pub fn cone(half: f64, radius: f64, taper: f64) -> Self {
+        Self::bent(half, 0.01, radius, taper)
+    }
+
     /// `n` area-uniform points on the surface, with Gaussian noise of standard deviation `noise`
     /// per coordinate. Model frame: the axis's middle at the origin, the axis along z there,
     /// bending towards +x (the centre of the arc is at (`arc_radius`, 0, 0)).
     pub fn points(&self, n: usize, noise: f64, seed: u64) -> Vec<DVec3> {
+        self.oriented_points(n, noise, seed)
+            .into_iter()
+            .map(|(p, _)| p)
+            .collect()
+    }
+
+    /// As [`Banana::points`], each with the outward unit normal of the surface where it was drawn
+    /// (before the noise): a one-view scan keeps the points whose normal faces the viewer.
+    pub fn oriented_points(&self, n: usize, noise: f64, seed: u64) -> Vec<(DVec3, DVec3)> {
         let mut rng = Rng::new(seed);
         let (big_r, phi_max) = (self.arc_radius, self.half_angle);
         let r_at = |phi: f64| self.radius * (1.0 + self.taper * phi / phi_max);
         let axis = |phi: f64| DVec3::new(big_r * (1.0 - phi.cos()), 0.0, big_r * phi.sin());
-        // Outward direction (away from the arc's centre) at angle φ.
+        // Outward direction (away from the arc's centre) at angle φ, and the axis's tangent.
         let outward = |phi: f64| DVec3::new(-phi.cos(), 0.0, phi.sin());
+        let tangent = |phi: f64| DVec3::new(phi.sin(), 0.0, phi.cos());
         // Tube area 2π R ∫ r dφ; each end a disk π r².
         let tube = 2.0 * PI * big_r * 2.0 * phi_max * self.radius;
         let ends = [-phi_max, phi_max].map(|phi| PI * r_at(phi).powi(2));
         let total = tube + ends[0] + ends[1];
         let r_max = r_at(phi_max).max(r_at(-phi_max));
+        // The tube's normal leans towards the thin end by the slope of the radius along the axis.
+        let slope = self.radius * self.taper / (phi_max * big_r);
         let mut out = Vec::with_capacity(n);
         while out.len() < n {
             let pick = rng.uniform() * total;
-            let p = if pick < tube {
+            let (p, normal) = if pick < tube {
                 // Area element r (R + r cos θ) dφ dθ: rejection from the largest.
                 let (phi, theta) = (rng.range(-phi_max, phi_max), rng.range(-PI, PI));
                 let r = r_at(phi);
                 if rng.uniform() * r_max * (big_r + r_max) > r * (big_r + r * theta.cos()) {
                     continue;
                 }
-                axis(phi) + r * (theta.cos() * outward(phi) + theta.sin() * DVec3::Y)
+                let radial = theta.cos() * outward(phi) + theta.sin() * DVec3::Y;
+                (
+                    axis(phi) + r * radial,
+                    (radial - slope * tangent(phi)).normalize(),
+                )
             } else {
                 let phi = if pick < tube + ends[0] {
                     -phi_max
@@ -223,9 +257,11 @@ impl Banana {
                     phi_max
                 };
                 let (rho, theta) = (r_at(phi) * rng.uniform().sqrt(), rng.range(-PI, PI));
-                axis(phi) + rho * (theta.cos() * outward(phi) + theta.sin() * DVec3::Y)
+                let p = axis(phi) + rho * (theta.cos() * outward(phi) + theta.sin() * DVec3::Y);
+                (p, phi.signum() * tangent(phi))
             };
-            out.push(p + noise * DVec3::new(rng.normal(), rng.normal(), rng.normal()));
+            let noisy = p + noise * DVec3::new(rng.normal(), rng.normal(), rng.normal());
+            out.push((noisy, normal));
         }
         out
     }
