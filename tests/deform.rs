@@ -63,3 +63,48 @@ fn taper_and_bend_fit_a_banana_that_a_superquadric_cannot() {
         assert!((a - 0.4).abs() < 0.06, "semi-axes {axes}");
     }
 }
+
+/// Seen whole, a cone and a banana bent through 120° keep their taper and bend: the fit starts
+/// from the centreline (`model::centreline`) and keeps the coverage springs on, so the cone's tip
+/// does not grow round nor the banana run on past its ends.
+#[test]
+fn a_cone_and_a_120_degree_banana_keep_their_taper_and_bend() {
+    let turn = DQuat::from_axis_angle(DVec3::new(-0.4, 0.8, 0.3).normalize(), 2.1);
+    for (shape, taper, bend) in [
+        (Banana::cone(1.5, 0.5, 1.0), 1.0, 0.0),
+        (
+            Banana::bent(2.0, 120.0, 0.3, 0.0),
+            0.0,
+            120f64.to_radians() / 2.0,
+        ),
+    ] {
+        let points: Vec<DVec3> = shape
+            .points(2000, 0.01 * shape.radius, 11)
+            .into_iter()
+            .map(|p| turn * p + DVec3::new(1.0, 0.5, -2.0))
+            .collect();
+        let options = |deform| {
+            let mut o = FitOptions {
+                global_only: true,
+                ..FitOptions::default()
+            };
+            o.dynamics.free.taper = deform;
+            o.dynamics.free.bend = deform;
+            o.for_data()
+        };
+        let plain = fit(&points, &options(false), |_| {}).expect("the fit runs");
+        let both = fit(&points, &options(true), |_| {}).expect("the fit runs");
+        let d = both.state.deformation;
+        assert!(
+            both.residuals.mean < 0.5 * plain.residuals.mean,
+            "plain {:?} vs deformed {:?} ({d:?})",
+            plain.residuals,
+            both.residuals
+        );
+        for t in d.taper {
+            assert!((t.abs() - taper).abs() <= 0.2 * taper.max(0.5), "{d:?}");
+        }
+        let fitted = d.bend[0].hypot(d.bend[1]);
+        assert!((fitted - bend).abs() <= 0.2 * bend.max(0.5), "{d:?}");
+    }
+}

@@ -22,6 +22,8 @@
 //! indexes — and the local displacements only the detail it misses. The paper lets both move from
 //! the start; set `global_first = false` for that.
 
+use super::centreline::{seed_deformation, seen_whole};
+use super::deform::GlobalDeformation;
 use super::dynamics::{
     DynamicsParams, ModelState, NodalForces, StepError, Workspace, node_positions, step_prepared,
 };
@@ -165,6 +167,12 @@ struct Relaxation<'a> {
     refine_start: f64,
     /// Set when a run stopped at that check.
     gave_up: bool,
+    /// The closest state a refining stage's checks have seen, with its mean distance, kept for a
+    /// tapered or bent fit (see [`Relaxation::refine`]).
+    refine_best: Option<(f64, ModelState)>,
+    /// The global stage keeps the coverage springs on (a tapered or bent fit of data that
+    /// surrounds it; see [`fit`]).
+    global_coverage: bool,
 }
 
 impl<'a> Relaxation<'a> {
@@ -174,12 +182,17 @@ impl<'a> Relaxation<'a> {
         unit: &[DVec3],
         start: &InitialPose,
     ) -> Self {
-        let state = ModelState::new(
+        // Free tapering and bending start from what the data's centreline shows.
+        let free = opts.dynamics.free;
+        let (start, deformation) = seed_deformation(unit, start, free.taper, free.bend)
+            .unwrap_or((*start, GlobalDeformation::IDENTITY));
+        let mut state = ModelState::new(
             tess,
             start.translation,
             start.rotation,
             start.shape.normalized(),
         );
+        state.deformation = deformation;
         let mut range = RangeForces::new(unit.to_vec(), opts.beta, opts.influence);
         range.coverage = 0.0;
         range.robust = (opts.outlier_ratio > 0.0).then(|| Robust::new(opts.outlier_ratio));
@@ -202,6 +215,8 @@ impl<'a> Relaxation<'a> {
             refine_previous: None,
             refine_start: 0.0,
             gave_up: false,
+            refine_best: None,
+            global_coverage: false,
         }
     }
 
@@ -216,7 +231,11 @@ impl<'a> Relaxation<'a> {
         let tess = self.tess;
         let mut clock = StageClock::new(stage);
         self.params.free.local = clock.local_free(self.opts);
-        self.range.coverage = clock.coverage(self.opts);
+        self.range.coverage = if self.global_coverage && stage == Stage::Global {
+            self.opts.coverage
+        } else {
+            clock.coverage(self.opts)
+        };
         self.range.plane = clock.plane(self.opts);
         self.range.mode = clock.influence(self.opts);
         self.range.reassign(tess, &self.x);
@@ -277,6 +296,12 @@ impl<'a> Relaxation<'a> {
                     continue;
                 }
                 let (distance, weighted) = refine_distances(tess, &self.x, &self.range);
+                let free = self.opts.dynamics.free;
+                if (free.taper || free.bend)
+                    && self.refine_best.as_ref().is_none_or(|b| distance < b.0)
+                {
+                    self.refine_best = Some((distance, self.state.clone()));
+                }
                 self.refine_least = refine_check(distance, least);
                 if refine_stalled(weighted, self.refine_previous) {
                     self.refine_least = None;
@@ -294,7 +319,8 @@ impl<'a> Relaxation<'a> {
     /// The refining stage from a global stage whose points lay `score` from the surface, within
     /// `cap` steps of this relaxation in all: given up past [`REFINE_GIVE_UP`] times the least
     /// distance seen, and undone (this relaxation back to its state before it) unless it came to
-    /// rest no farther than `score`.
+    /// rest no farther than `score`, or — with tapering or bending free — one of its checks saw
+    /// a state closer than `score` (then the closest is kept).
     fn refine(
         &mut self,
         score: f64,
@@ -308,9 +334,21 @@ impl<'a> Relaxation<'a> {
         let at_rest = self.run(Stage::Refine, budget, progress)?;
         let gave_up = self.gave_up;
         (self.refine_least, self.refine_previous, self.gave_up) = (None, None, false);
-        let after = mean_distance(self.tess, &self.x, self.range.points());
-        let kept = at_rest && after <= score;
+        let mut after = mean_distance(self.tess, &self.x, self.range.points());
+        let mut kept = at_rest && after <= score;
         let steps = self.steps - before.steps;
+        // A tapered or bent fit keeps the closest state its checks saw when that is closer than
+        // the global stage's: its refinement can come most of the way down and then wobble by a
+        // per cent as the deformation creeps on (a cone: 0.043 to 0.0080, then 0.0081), which
+        // the rules above, made for runaway pure fits, would undo whole.
+        if let Some((distance, state)) = self.refine_best.take()
+            && !kept
+            && distance <= score
+        {
+            self.state = state;
+            self.state.node_positions(self.tess, &mut self.x);
+            (after, kept) = (distance, true);
+        }
         if !kept {
             *self = before;
         }
@@ -369,6 +407,30 @@ pub(crate) fn run_parallel<I: Sync, R: Send>(
     results.into_iter().map(|(_, r)| r).collect()
 }
 
+/// Whether a fit that frees tapering or bending keeps the model-to-data coverage springs on in
+/// its global stages (beyond the paper). Tapering and bending let a model run on past the ends of
+/// its data, which the data-to-model springs do not see: a cone's tip grown round, a banana longer
+/// and more bent than it is. The coverage springs hold the model to the data's extent, but on a
+/// one-view scan they would pull the unseen side onto the seen one; so they stay on only when the
+/// data surrounds the start of one of the hypotheses ([`seen_whole`]).
+fn surrounds(
+    tess: &Tessellation,
+    opts: &FitOptions,
+    unit: &[DVec3],
+    norm: &Normalization,
+    candidates: &[InitialPose],
+) -> bool {
+    let free = opts.dynamics.free;
+    if !(free.taper || free.bend) || opts.coverage <= 0.0 {
+        return false;
+    }
+    candidates.iter().any(|candidate| {
+        let start = Relaxation::new(tess, opts, unit, &norm.pose_to_unit(candidate));
+        let smallest = start.state.shape.semi_axes().min_element();
+        seen_whole(tess, &start.x, unit, smallest)
+    })
+}
+
 /// Fits a deformable superquadric to `points`, calling `progress` every 100 steps.
 ///
 /// Stages: coverage (placing, global DOFs), global (the paper's springs, global DOFs), joint
@@ -392,10 +454,12 @@ pub fn fit(
     if uses_lm(opts) {
         return fit_lm(points, opts, &norm, &unit, &candidates, tess, &mut progress);
     }
+    let whole = surrounds(&tess, opts, &unit, &norm, &candidates);
     // Each hypothesis gets an equal share of the step cap (as in the plugin's fit driver).
     let share = opts.max_steps / candidates.len().max(1) as u32;
     let run = |initial: &InitialPose, progress: &mut dyn FnMut(&FitProgress)| {
         let mut relax = Relaxation::new(&tess, opts, &unit, &norm.pose_to_unit(initial));
+        relax.global_coverage = whole;
         let mut converged = true;
         for stage in global_stages(opts) {
             converged &= relax.run(stage, share, &mut |p: &FitProgress| progress(p))?;
@@ -421,6 +485,7 @@ pub fn fit(
         && let Some(dual) = cross_section_dual(&InitialPose::of(&relax.state))
     {
         let mut other = Relaxation::new(&tess, opts, &unit, &dual);
+        other.global_coverage = whole;
         let budget = opts.max_steps.saturating_sub(steps_used);
         let other_converged = other.run(Stage::Global, budget, &mut progress)?;
         steps_used += other.steps;
@@ -458,6 +523,7 @@ pub fn fit(
         // The candidates are independent runs: they run side by side like the hypotheses.
         let run = |candidate: &InitialPose, progress: &mut dyn FnMut(&FitProgress)| {
             let mut other = Relaxation::new(&tess, opts, &unit, candidate);
+            other.global_coverage = whole;
             let converged = other.run(Stage::Global, share, &mut |p: &FitProgress| progress(p))?;
             let mut undone = 0;
             // The candidate's score, on its worker: after the global stage, and again only if a

@@ -8,6 +8,7 @@
 //! [`parts`] (several parts on one cloud) → [`noise`] (the noise of a cloud and the stiffness it calls for) → [`image_fit`] (parts fitted to an image) → [`descriptor`] (fitted parts compared by their
 //! global parameters).
 
+pub mod centreline;
 pub mod deform;
 pub mod descriptor;
 pub mod distance;
