@@ -182,17 +182,7 @@ impl<'a> Relaxation<'a> {
         unit: &[DVec3],
         start: &InitialPose,
     ) -> Self {
-        // Free tapering and bending start from what the data's centreline shows.
-        let free = opts.dynamics.free;
-        let (start, deformation) = seed_deformation(unit, start, free.taper, free.bend)
-            .unwrap_or((*start, GlobalDeformation::IDENTITY));
-        let mut state = ModelState::new(
-            tess,
-            start.translation,
-            start.rotation,
-            start.shape.normalized(),
-        );
-        state.deformation = deformation;
+        let state = start_state(tess, opts, unit, start);
         let mut range = RangeForces::new(unit.to_vec(), opts.beta, opts.influence);
         range.coverage = 0.0;
         range.robust = (opts.outlier_ratio > 0.0).then(|| Robust::new(opts.outlier_ratio));
@@ -424,11 +414,33 @@ fn surrounds(
     if !(free.taper || free.bend) || opts.coverage <= 0.0 {
         return false;
     }
+    let mut x = Vec::new();
     candidates.iter().any(|candidate| {
-        let start = Relaxation::new(tess, opts, unit, &norm.pose_to_unit(candidate));
-        let smallest = start.state.shape.semi_axes().min_element();
-        seen_whole(tess, &start.x, unit, smallest)
+        let state = start_state(tess, opts, unit, &norm.pose_to_unit(candidate));
+        state.node_positions(tess, &mut x);
+        seen_whole(tess, &x, unit, state.shape.semi_axes().min_element())
     })
+}
+
+/// The state a relaxation of `unit` starts from at `start`: with tapering or bending free, moved
+/// and deformed as the data's centreline shows ([`seed_deformation`]).
+fn start_state(
+    tess: &Tessellation,
+    opts: &FitOptions,
+    unit: &[DVec3],
+    start: &InitialPose,
+) -> ModelState {
+    let free = opts.dynamics.free;
+    let (start, deformation) = seed_deformation(unit, start, free.taper, free.bend)
+        .unwrap_or((*start, GlobalDeformation::IDENTITY));
+    let mut state = ModelState::new(
+        tess,
+        start.translation,
+        start.rotation,
+        start.shape.normalized(),
+    );
+    state.deformation = deformation;
+    state
 }
 
 /// Fits a deformable superquadric to `points`, calling `progress` every 100 steps.

@@ -78,7 +78,8 @@ pub fn principal_frame(points: &[DVec3]) -> DMat3 {
     DMat3::from_cols(x, z.cross(x), z)
 }
 
-fn quantile(sorted: &[f64], q: f64) -> f64 {
+/// The `q` quantile of `sorted` (ascending, non-empty), interpolated between neighbours.
+pub(crate) fn quantile(sorted: &[f64], q: f64) -> f64 {
     let pos = q * (sorted.len() - 1) as f64;
     let (lo, hi) = (pos.floor() as usize, pos.ceil() as usize);
     sorted[lo] + (sorted[hi] - sorted[lo]) * (pos - lo as f64)
