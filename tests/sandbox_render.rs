@@ -109,11 +109,6 @@ fn sandbox(dir: &Path, seconds: u32, args: &[&str], envs: &[(&str, &str)]) -> st
     out
 }
 
-/// The sandbox under Xvfb with `args`, started in `dir`, killed after `seconds`.
-fn sandbox_in(dir: &Path, seconds: u32, args: &[&str]) -> std::process::Output {
-    sandbox(dir, seconds, args, &[])
-}
-
 /// Started from another folder, not through cargo, the sandbox finds the crate's assets, says
 /// where they are, and a scripted run ends by itself.
 #[test]
@@ -125,7 +120,7 @@ fn the_sandbox_started_from_elsewhere_finds_its_assets_and_exits() {
     let out = dir.join(format!("bdsq-elsewhere-{}.png", std::process::id()));
     let _ = std::fs::remove_file(&out);
     let path = out.display().to_string();
-    let run = sandbox_in(
+    let run = sandbox(
         &dir,
         180,
         &[
@@ -135,6 +130,7 @@ fn the_sandbox_started_from_elsewhere_finds_its_assets_and_exits() {
             "--exit-after-steps",
             "5",
         ],
+        &[],
     );
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(
@@ -155,7 +151,7 @@ fn a_scripted_run_of_a_missing_scene_exits_2_naming_the_file() {
     }
     let dir = std::env::temp_dir();
     let path = dir.join("bdsq-nope.png").display().to_string();
-    let run = sandbox_in(
+    let run = sandbox(
         &dir,
         180,
         &[
@@ -165,6 +161,7 @@ fn a_scripted_run_of_a_missing_scene_exits_2_naming_the_file() {
             "--exit-after-steps",
             "20",
         ],
+        &[],
     );
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert_eq!(run.status.code(), Some(2), "{stderr}");
