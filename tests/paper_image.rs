@@ -13,8 +13,8 @@ use bevy_deformable_sq::model::dynamics::{ModelState, NodalForces, Workspace, st
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::forces::image::{ImageForces, ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::image_fit::{
-    ImageExperiment, ImagePartFit, PartAxes, doll_experiment, fit_image, outline_potential,
-    parts_on, pestle_experiment, silhouette_iou,
+    ImageExperiment, ImagePartFit, PartAxes, PartSilhouette, doll_experiment, fit_image,
+    outline_potential, part_silhouette, parts_on, pestle_experiment, silhouette_iou,
 };
 use bevy_deformable_sq::plugin::ImageData;
 use bevy_deformable_sq::prelude::*;
@@ -27,9 +27,11 @@ struct Outcome {
     outline: (f64, f64),
     iou: (f64, f64),
     fits: Vec<ImagePartFit>,
+    /// Each part's silhouette after the fit.
+    parts: Vec<PartSilhouette>,
 }
 
-/// Runs an experiment with a step cap per part (the tests' budget; the CLI runs to rest).
+/// Runs an experiment with a step cap per part.
 fn run(e: &ImageExperiment, max_steps: usize) -> Outcome {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(e.image);
     let (w, h, lum) = load_luminance(&path).unwrap();
@@ -64,7 +66,16 @@ fn run(e: &ImageExperiment, max_steps: usize) -> Outcome {
         silhouette_iou(&potential, &parts_on(&tess, &before)),
         silhouette_iou(&potential, &parts_on(&tess, &after)),
     );
-    Outcome { outline, iou, fits }
+    let parts = after
+        .iter()
+        .map(|x| part_silhouette(&potential, &tess, x))
+        .collect();
+    Outcome {
+        outline,
+        iou,
+        fits,
+        parts,
+    }
 }
 
 #[test]
@@ -90,7 +101,7 @@ fn doll_parts_move_onto_the_horses_silhouette() {
     let e = doll_experiment();
     assert_eq!(e.parts.len(), 11);
     assert_eq!(Tessellation::new(e.options.k).node_count(), 963);
-    let o = run(&e, 800);
+    let o = run(&e, e.options.max_steps);
     assert!(o.fits.iter().all(|f| f.state.is_finite()));
     assert!(
         o.outline.1 > 0.8 && o.outline.1 > o.outline.0 + 0.4,
@@ -107,6 +118,14 @@ fn doll_parts_move_onto_the_horses_silhouette() {
     // Most parts individually end on edges.
     let on_edges = o.fits.iter().filter(|f| f.outline_after > 0.75).count();
     assert!(on_edges >= 8, "{on_edges} of 11 parts end on edges");
+    // The union covers the horse, and no part is a sliver or off the horse (issue 44's targets).
+    assert!(o.iou.1 >= 0.92, "silhouette IoU {:.3}", o.iou.1);
+    for ((name, _), s) in e.parts.iter().zip(&o.parts) {
+        assert!(
+            s.area >= 150 && s.width >= 5.0 && s.on_foreground >= 0.9,
+            "{name}: {s:?}"
+        );
+    }
 }
 
 /// A dark ellipse on white, 120×120.

@@ -18,6 +18,7 @@ pub mod fit;
 pub mod forces;
 pub mod frame;
 pub mod image_fit;
+pub mod image_measure;
 pub mod inertia;
 pub mod init;
 pub mod joint;

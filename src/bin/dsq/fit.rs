@@ -12,8 +12,8 @@ use bevy_deformable_sq::model::fit::{
 };
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::image_fit::{
-    ImagePartFit, PartAxes, fit_image, outline_potential, outline_segments, parts_on, segment,
-    silhouette_iou,
+    ImagePartFit, PartAxes, fit_image, outline_potential, outline_segments, part_silhouette,
+    parts_on, segment, silhouette_iou,
 };
 use bevy_deformable_sq::model::parts::fit_parts;
 use bevy_deformable_sq::scene::{PartRun, SceneData, SceneDef, Split, run_scene};
@@ -221,7 +221,11 @@ fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
     }
     let mut all_params = Vec::new();
     for (i, f) in fits.iter().enumerate() {
-        let line = image_part_line(&path.display().to_string(), i + 1, f, tess.node_count());
+        let mut line = image_part_line(&path.display().to_string(), i + 1, f, tess.node_count());
+        let sil = part_silhouette(&potential, &tess, &after[i]);
+        line["area_px"] = sil.area.into();
+        line["width_px"] = ((sil.width * 10.0).round() / 10.0).into();
+        line["on_foreground"] = ((sil.on_foreground * 1e3).round() / 1e3).into();
         println!("{line}");
         all_params.push(line);
     }

@@ -130,6 +130,11 @@ pub struct ImagePotential {
     grad: Vec<DVec2>,
     p_ref: f64,
     foreground: Vec<bool>,
+    /// ∇(G_σ ∗ I) at every pixel, per unit length (y up): the direction in which the smoothed
+    /// image brightens.
+    brightening: Vec<DVec2>,
+    /// +1 when the foreground is the darker side of Otsu's threshold, −1 when it is the brighter.
+    foreground_polarity: f64,
 }
 
 /// Normalised 1D Gaussian of width `sigma` pixels, radius ⌈3σ⌉.
@@ -224,10 +229,12 @@ impl ImagePotential {
             false,
         );
         let mut p = vec![0.0; width * height];
+        let mut brightening = vec![DVec2::ZERO; width * height];
         for row in 0..height {
             for col in 0..width {
                 let [dx, dy] = pixel_gradient(&smooth, width, height, col, row);
                 p[row * width + col] = (dx * dx + dy * dy).sqrt() / pitch;
+                brightening[row * width + col] = DVec2::new(dx, dy) / pitch;
             }
         }
         let mut grad = vec![DVec2::ZERO; width * height];
@@ -240,7 +247,7 @@ impl ImagePotential {
         let mut sorted = p.clone();
         sorted.sort_by(f64::total_cmp);
         let p_ref = sorted[((sorted.len() - 1) as f64 * 0.99).round() as usize];
-        let foreground = foreground_mask(width, height, &luminance);
+        let (foreground, foreground_bright) = foreground_mask(width, height, &luminance);
         Ok(Self {
             width,
             height,
@@ -252,6 +259,8 @@ impl ImagePotential {
             grad,
             p_ref,
             foreground,
+            brightening,
+            foreground_polarity: if foreground_bright { -1.0 } else { 1.0 },
         })
     }
 
@@ -294,6 +303,25 @@ impl ImagePotential {
     /// the image's border (an object in front of a background).
     pub fn foreground(&self) -> &[bool] {
         &self.foreground
+    }
+
+    /// How well an edge at a located point faces along a part's outward in-plane unit normal
+    /// `n`: the cosine between `n` and the direction from foreground to background across the
+    /// edge (the direction ∇(G_σ ∗ I) brightens in, reversed when the foreground is the brighter
+    /// side), clamped to [0, 1]. 1 where the part's outline would lie with the object inside and
+    /// the background outside; 0 where the part would lie outside the object (a part flattened
+    /// onto one edge has one side of each kind). 0 off the image or where the image is flat.
+    pub fn edge_facing(&self, x: DVec2, n: DVec2) -> f64 {
+        self.edge_facing_on(self.locate(x), n)
+    }
+
+    /// [`Self::edge_facing`] of a located point.
+    fn edge_facing_on(&self, at: Option<OnImage>, n: DVec2) -> f64 {
+        at.map_or(0.0, |p| {
+            let g = bilinear(&self.brightening, &self.cell_at(p));
+            let dir = (self.foreground_polarity * g).normalize_or_zero();
+            dir.dot(n).clamp(0.0, 1.0)
+        })
     }
 
     /// True when the pixel under a plane point is foreground (false off the image).
@@ -514,6 +542,10 @@ pub struct ImageForces {
     /// edge from flattening onto it (Cohen's balloon, 1991, with its sign from the foreground).
     /// 0 gives the paper's forces.
     pub region: f64,
+    /// With the region force on: the outline feels only edges that face its outward normal,
+    /// with the object inside and the background outside ([`ImagePotential::edge_facing`]).
+    /// Without it, both sides of a thin part can settle on one edge (a sliver).
+    pub oriented: bool,
 }
 
 impl ImageForces {
@@ -525,6 +557,7 @@ impl ImageForces {
             band: DEFAULT_BAND,
             outline_only: true,
             region: 0.0,
+            oriented: false,
         }
     }
 
@@ -591,7 +624,8 @@ impl ImageForces {
             let sigma_w = self.potential.sigma() * self.potential.pitch();
             self.region * self.beta * self.potential.p_ref() / sigma_w
         });
-        let one_pass = push.is_some()
+        let needs_normals = push.is_some() || self.oriented;
+        let one_pass = needs_normals
             && normals_in_one_pass(acting.iter().filter(|&&a| a).count(), node_x.len());
         if one_pass {
             tess.vertex_normals(node_x, normals);
@@ -602,25 +636,32 @@ impl ImageForces {
             }
             let a = tess.node_area[i];
             let at = self.potential.locate(x.truncate());
-            if let Some(push) = push {
-                let normal = if one_pass {
-                    normals[i]
+            let n = if !needs_normals {
+                DVec2::ZERO
+            } else if one_pass {
+                normals[i].truncate().normalize_or_zero()
+            } else {
+                tess.vertex_normal(node_x, i).truncate().normalize_or_zero()
+            };
+            if let Some(push) = push
+                && n != DVec2::ZERO
+            {
+                let sign = if at.is_some_and(|p| self.potential.foreground_at(p)) {
+                    1.0
                 } else {
-                    tess.vertex_normal(node_x, i)
+                    -1.0
                 };
-                let n = normal.truncate().normalize_or_zero();
-                if n != DVec2::ZERO {
-                    let sign = if at.is_some_and(|p| self.potential.foreground_at(p)) {
-                        1.0
-                    } else {
-                        -1.0
-                    };
-                    out.force[i] += (sign * push * a * n).extend(0.0);
-                }
+                out.force[i] += (sign * push * a * n).extend(0.0);
             }
+            // An oriented outline feels only the edges that face its outward normal.
+            let facing = if self.oriented {
+                self.potential.edge_facing_on(at, n)
+            } else {
+                1.0
+            };
             let (g, p) = self.potential.gradient_and_potential_on(at);
             let near_edge = (p / self.potential.p_ref()).clamp(0.0, 1.0);
-            out.force[i] += self.beta * a * DVec3::new(g.x, g.y, 0.0);
+            out.force[i] += facing * self.beta * a * DVec3::new(g.x, g.y, 0.0);
             out.stiffness[i] += kappa * a * (FLAT_WEIGHT + (1.0 - FLAT_WEIGHT) * near_edge);
         }
     }
@@ -670,7 +711,8 @@ pub fn otsu_threshold(luminance: &[f64]) -> f64 {
 }
 
 /// See [`ImagePotential::foreground`].
-fn foreground_mask(w: usize, h: usize, lum: &[f64]) -> Vec<bool> {
+/// Also returns true when the foreground is the brighter side.
+fn foreground_mask(w: usize, h: usize, lum: &[f64]) -> (Vec<bool>, bool) {
     let t = otsu_threshold(lum);
     let (mut bright, mut border) = (0usize, 0usize);
     for row in 0..h {
@@ -682,7 +724,8 @@ fn foreground_mask(w: usize, h: usize, lum: &[f64]) -> Vec<bool> {
         }
     }
     let foreground_bright = 2 * bright < border;
-    lum.iter().map(|&v| (v > t) == foreground_bright).collect()
+    let mask = lum.iter().map(|&v| (v > t) == foreground_bright).collect();
+    (mask, foreground_bright)
 }
 
 /// Converts 8-bit or float image data to luminance in [0, 1] (Rec. 709 weights on RGB).

@@ -294,6 +294,7 @@ fn forces_with_kept_buffers_equal_the_forces_from_every_nodes_normals_to_the_bit
             band: 0.3,
             outline_only,
             region,
+            oriented: false,
         };
         let tess = Tessellation::new(k);
         let state = ModelState::new(
@@ -365,6 +366,7 @@ fn forces_act_in_the_band_parallel_to_the_plane_and_follow_the_energy() {
         band: 0.05,
         outline_only: false,
         region: 0.0,
+        oriented: false,
     };
     let tess = Tessellation::new(12);
     let shape = SuperquadricParams {
@@ -424,5 +426,38 @@ fn forces_act_in_the_band_parallel_to_the_plane_and_follow_the_energy() {
             "f_c[{k}] = {} vs −∂E/∂c = {fd}",
             fq[k]
         );
+    }
+}
+
+#[test]
+fn edges_face_out_of_the_foreground_whichever_side_is_brighter() {
+    // A bright disc on dark (the disc is the foreground) and its negative, a dark disc on bright.
+    let (w, h, r) = (80, 80, 20.0);
+    for lum in [
+        disc(w, h, r),
+        disc(w, h, r).iter().map(|v| 1.0 - v).collect(),
+    ] {
+        let p = ImagePotential::new(w, h, lum, 2.0, ImageFrame::default()).unwrap();
+        let centre = DVec2::new(40.0, 40.0);
+        for angle in [0.0, 1.0, 2.5, 4.0] {
+            let out = DVec2::from_angle(angle);
+            // On the rim, in plane coordinates (y up: the pixel row is flipped).
+            let rim = p.to_plane(centre + DVec2::new(out.x, -out.y) * r);
+            let facing_out = p.edge_facing(rim, out);
+            assert!(facing_out > 0.95, "angle {angle}: {facing_out}");
+            assert_eq!(p.edge_facing(rim, -out), 0.0, "angle {angle}");
+            // Across the edge's direction: half-way.
+            let across = p.edge_facing(rim, (out + out.perp()).normalize());
+            assert!(
+                (across - 0.5f64.sqrt()).abs() < 0.05,
+                "angle {angle}: {across}"
+            );
+        }
+        // Flat image far from the edge, and off the image: no edge to face.
+        assert_eq!(
+            p.edge_facing(p.to_plane(DVec2::new(2.0, 2.0)), DVec2::X),
+            0.0
+        );
+        assert_eq!(p.edge_facing(DVec2::new(9.0, 9.0), DVec2::X), 0.0);
     }
 }
