@@ -15,7 +15,8 @@
 //!
 //! **The loop.** Each part runs on its own (parts do not interact): global DOFs until rest, then
 //! global and local together until rest, or `max_steps` in all. Rest is a step that moves no node
-//! by more than `tolerance` × the image's extent. With a region force, the global stage pulls the
+//! by more than `tolerance` × the image's extent, or [`REST_WINDOW`] steps that together move none
+//! by more (a part that only jitters in place). With a region force, the global stage pulls the
 //! outline only to edges that face outwards ([`ImageForces::oriented`]); the local stage keeps the
 //! plain pull.
 //!
@@ -285,7 +286,9 @@ pub struct ImageFitOptions {
     pub fix_epsilon: bool,
     /// Run the global DOFs to rest before freeing the local ones.
     pub global_first: bool,
-    /// Rest: no node moves more than this × the image extent in a step.
+    /// Rest: no node moves more than this × the image extent in a step, or in the last
+    /// [`REST_WINDOW`] steps together (a part that only jitters in place as its outline nodes
+    /// switch).
     pub tolerance: f64,
     /// Step cap per part.
     pub max_steps: usize,
@@ -422,6 +425,43 @@ pub struct ImagePartFit {
     pub outline_after: f64,
 }
 
+/// Steps between the checks of a part's net motion (see [`ImageFitOptions::tolerance`]).
+pub const REST_WINDOW: usize = 50;
+
+/// The rest test of one stage: a step that moves no node by more than `rest`, or
+/// [`REST_WINDOW`] steps that together move none by more.
+struct RestCheck {
+    rest: f64,
+    steps: usize,
+    checkpoint: Vec<DVec3>,
+}
+
+impl RestCheck {
+    fn new(rest: f64) -> Self {
+        Self {
+            rest,
+            steps: 0,
+            checkpoint: Vec::new(),
+        }
+    }
+
+    /// True when the step from `before` to `after` ends at rest.
+    fn after_step(&mut self, before: &[DVec3], after: &[DVec3]) -> bool {
+        if max_motion(before, after) < self.rest {
+            return true;
+        }
+        self.steps += 1;
+        if !self.steps.is_multiple_of(REST_WINDOW) {
+            return false;
+        }
+        let jitters =
+            !self.checkpoint.is_empty() && max_motion(&self.checkpoint, after) < self.rest;
+        self.checkpoint.clear();
+        self.checkpoint.extend_from_slice(after);
+        jitters
+    }
+}
+
 /// Runs one part from `initial` to rest under `forces`.
 pub fn fit_part(
     tess: &Tessellation,
@@ -455,6 +495,7 @@ pub fn fit_part(
         // plain pull: a folding membrane's normals would switch its forces on and off.
         let mut forces = forces.clone();
         forces.oriented = forces.region > 0.0 && !local;
+        let mut rest_check = RestCheck::new(rest);
         while steps < opts.max_steps {
             nf.clear(tess.node_count());
             forces.accumulate_with(tess, &x, &mut nf, &mut scratch);
@@ -463,10 +504,10 @@ pub fn fit_part(
             global_steps += !local as usize;
             // The new state's node positions, computed once for the motion and the next forces.
             let x_new = ws.prepare(tess, &state);
-            let motion = max_motion(&x, x_new);
+            let at = rest_check.after_step(&x, x_new);
             x.clear();
             x.extend_from_slice(x_new);
-            if motion < rest {
+            if at {
                 at_rest = true;
                 break;
             }
@@ -646,6 +687,30 @@ mod tests {
             after > 0.9 && after > before + 0.1,
             "IoU {before} -> {after}"
         );
+    }
+
+    #[test]
+    fn a_part_jittering_in_place_is_at_rest_and_one_creeping_is_not() {
+        let rest = 1e-3;
+        let base = vec![DVec3::ZERO; 4];
+        // Each step moves a node by 10 × rest, back and forth, or back and forth with a drift.
+        let at = |step: usize, drift: f64| -> Vec<DVec3> {
+            let mut x = base.clone();
+            x[2].x = if step.is_multiple_of(2) {
+                0.0
+            } else {
+                10.0 * rest
+            } + drift * step as f64;
+            x
+        };
+        for (drift, expected) in [(0.0, Some(2 * REST_WINDOW)), (0.05 * rest, None)] {
+            let mut check = RestCheck::new(rest);
+            let first = (1..=10 * REST_WINDOW)
+                .find(|&s| check.after_step(&at(s - 1, drift), &at(s, drift)));
+            assert_eq!(first, expected, "drift {drift}");
+        }
+        // A step that moves nothing by more than `rest` is rest at once.
+        assert!(RestCheck::new(rest).after_step(&base, &base));
     }
 
     #[test]
