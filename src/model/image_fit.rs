@@ -30,6 +30,7 @@ use super::fit::max_motion;
 use super::forces::image::{
     DEFAULT_BAND, DEFAULT_IMAGE_BETA, ImageForces, ImagePotential, ImageScratch,
 };
+use super::image_measure::PixelMoments;
 pub use super::image_measure::{
     PartSilhouette, iou, outline_potential, outline_segments, part_silhouette, parts_on,
     silhouette_iou, silhouette_mask,
@@ -217,15 +218,10 @@ pub fn segment(potential: &ImagePotential, min_area: usize) -> Vec<Blob> {
         }
         seen[start] = true;
         stack.push(start);
-        let (mut n, mut s, mut ss) = (0usize, DVec2::ZERO, [0.0f64; 3]);
+        let mut moments = PixelMoments::default();
         while let Some(i) = stack.pop() {
             let (c, r) = (i % w, i / w);
-            let p = DVec2::new(c as f64, r as f64);
-            n += 1;
-            s += p;
-            ss[0] += p.x * p.x;
-            ss[1] += p.x * p.y;
-            ss[2] += p.y * p.y;
+            moments.add(DVec2::new(c as f64, r as f64));
             let mut visit = |j: usize| {
                 if mask[j] && !seen[j] {
                     seen[j] = true;
@@ -245,17 +241,13 @@ pub fn segment(potential: &ImagePotential, min_area: usize) -> Vec<Blob> {
                 visit(i + w);
             }
         }
-        if n >= min_area.max(1) {
-            let m = s / n as f64;
-            let nf = n as f64;
-            // Pixels are unit squares: add their own variance 1/12 per axis.
-            let sxx = ss[0] / nf - m.x * m.x + 1.0 / 12.0;
-            let sxy = ss[1] / nf - m.x * m.y;
-            let syy = ss[2] / nf - m.y * m.y + 1.0 / 12.0;
+        if moments.count() >= min_area.max(1)
+            && let Some((centroid, covariance)) = moments.mean_and_covariance()
+        {
             blobs.push(Blob {
-                area: n,
-                centroid: m,
-                covariance: [[sxx, sxy], [sxy, syy]],
+                area: moments.count(),
+                centroid,
+                covariance,
             });
         }
     }

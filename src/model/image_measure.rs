@@ -131,34 +131,62 @@ pub fn part_silhouette(
     let mask = silhouette_mask(potential, &[(tess, x)]);
     let w = potential.width();
     let fg = potential.foreground();
-    let (mut n, mut on, mut s, mut ss) = (0usize, 0usize, DVec2::ZERO, [0.0f64; 3]);
+    let (mut moments, mut on) = (PixelMoments::default(), 0usize);
     for (i, _) in mask.iter().enumerate().filter(|(_, m)| **m) {
-        let p = DVec2::new((i % w) as f64, (i / w) as f64);
-        n += 1;
+        moments.add(DVec2::new((i % w) as f64, (i / w) as f64));
         on += fg[i] as usize;
-        s += p;
-        ss[0] += p.x * p.x;
-        ss[1] += p.x * p.y;
-        ss[2] += p.y * p.y;
     }
-    if n == 0 {
+    let Some((_, [[sxx, sxy], [_, syy]])) = moments.mean_and_covariance() else {
         return PartSilhouette {
             area: 0,
             width: 0.0,
             on_foreground: 0.0,
         };
-    }
-    let nf = n as f64;
-    let m = s / nf;
-    // Pixels are unit squares: each adds its own variance 1/12 per axis.
-    let sxx = ss[0] / nf - m.x * m.x + 1.0 / 12.0;
-    let sxy = ss[1] / nf - m.x * m.y;
-    let syy = ss[2] / nf - m.y * m.y + 1.0 / 12.0;
+    };
     let lambda_min = 0.5 * (sxx + syy) - (0.25 * (sxx - syy).powi(2) + sxy * sxy).sqrt();
     PartSilhouette {
-        area: n,
+        area: moments.count(),
         width: (12.0 * lambda_min.max(0.0)).sqrt(),
-        on_foreground: on as f64 / nf,
+        on_foreground: on as f64 / moments.count() as f64,
+    }
+}
+
+/// Running sums of pixel positions: the count, mean and covariance of a set of pixels.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct PixelMoments {
+    n: usize,
+    sum: DVec2,
+    /// Σx², Σxy, Σy².
+    squares: [f64; 3],
+}
+
+impl PixelMoments {
+    /// Adds the pixel at `p` (column, row).
+    pub(crate) fn add(&mut self, p: DVec2) {
+        self.n += 1;
+        self.sum += p;
+        self.squares[0] += p.x * p.x;
+        self.squares[1] += p.x * p.y;
+        self.squares[2] += p.y * p.y;
+    }
+
+    /// Pixels added.
+    pub(crate) fn count(&self) -> usize {
+        self.n
+    }
+
+    /// The mean position and the covariance [[σxx, σxy], [σxy, σyy]] (pixels², rows downwards)
+    /// of the pixels, each a unit square with its own variance 1/12 per axis; `None` when empty.
+    pub(crate) fn mean_and_covariance(&self) -> Option<(DVec2, [[f64; 2]; 2])> {
+        if self.n == 0 {
+            return None;
+        }
+        let n = self.n as f64;
+        let m = self.sum / n;
+        let sxx = self.squares[0] / n - m.x * m.x + 1.0 / 12.0;
+        let sxy = self.squares[1] / n - m.x * m.y;
+        let syy = self.squares[2] / n - m.y * m.y + 1.0 / 12.0;
+        Some((m, [[sxx, sxy], [sxy, syy]]))
     }
 }
 
