@@ -530,6 +530,24 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
     })
     .into_iter()
     .chain([(&square, robust(true)), (&square, robust(false))]);
+    // A cone fitted with tapering and bending free: the start seeded from its centreline, the
+    // coverage springs kept on in the global stages (the cloud surrounds the model) and the
+    // refinement's closest state kept.
+    let cone_shape = bevy_deformable_sq::synthetic::Banana::cone(1.5, 0.5, 1.0);
+    let turn = DQuat::from_axis_angle(DVec3::new(-0.4, 0.8, 0.3).normalize(), 2.1);
+    let cone: Vec<DVec3> = cone_shape
+        .points(600, 0.01 * cone_shape.radius, 11)
+        .into_iter()
+        .map(|p| turn * p + DVec3::new(1.0, 0.5, -2.0))
+        .collect();
+    let mut deformed = FitOptions {
+        k: 11,
+        global_only: true,
+        ..Default::default()
+    };
+    deformed.dynamics.free.taper = true;
+    deformed.dynamics.free.bend = true;
+    let cases = cases.chain([(&cone, deformed), (&cone, deformed.for_data())]);
     let mut switched = false;
     for (points, opts) in cases {
         let (global_only, point_to_plane) = (opts.global_only, opts.point_to_plane);
@@ -552,8 +570,8 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
         );
         assert_eq!(app.residuals, core.residuals);
         eprintln!(
-            "global_only {global_only}: {} steps, {:?}, refinement {:?}",
-            app.steps, app.residuals, app.refinement
+            "global_only {global_only}: {} steps, {:?}, refinement {:?}, {:?}",
+            app.steps, app.residuals, app.refinement, app.state.deformation
         );
     }
     assert!(

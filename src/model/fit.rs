@@ -403,7 +403,7 @@ pub(crate) fn run_parallel<I: Sync, R: Send>(
 /// and more bent than it is. The coverage springs hold the model to the data's extent, but on a
 /// one-view scan they would pull the unseen side onto the seen one; so they stay on only when the
 /// data surrounds the start of one of the hypotheses ([`seen_whole`]).
-fn surrounds(
+pub(crate) fn surrounds(
     tess: &Tessellation,
     opts: &FitOptions,
     unit: &[DVec3],
@@ -424,7 +424,7 @@ fn surrounds(
 
 /// The state a relaxation of `unit` starts from at `start`: with tapering or bending free, moved
 /// and deformed as the data's centreline shows ([`seed_deformation`]).
-fn start_state(
+pub(crate) fn start_state(
     tess: &Tessellation,
     opts: &FitOptions,
     unit: &[DVec3],

@@ -550,6 +550,9 @@ pub struct FitDriver {
     pub reassignments: u64,
     /// Steps whose local update was sub-stepped for stability.
     pub substepped_steps: u64,
+    /// The global stage keeps the model-to-data coverage springs on, as `fit` does for a
+    /// tapered or bent fit of data that surrounds the model (false: the stage's own setting).
+    pub global_coverage: bool,
     pub(crate) seen_steps: u64,
 }
 
@@ -567,6 +570,7 @@ impl FitDriver {
             global_steps: 0,
             reassignments: 0,
             substepped_steps: 0,
+            global_coverage: false,
             seen_steps: 0,
         }
     }

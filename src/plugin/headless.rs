@@ -12,12 +12,13 @@ use super::{
     RigidState, SimControl,
 };
 use crate::model::dynamics::ModelState;
+use crate::model::fem::Tessellation;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
     Refinement, Stage, cross_section_dual, extend_squareness, fit_residuals, global_stages,
     has_joint_stage, initial_hypotheses, mean_distance, refine_candidate, refine_check,
     refine_distances, refine_overgrown, refine_stalled, similarity_candidates, similarity_share,
-    validate_options, validate_points, weighted_mean_distance,
+    start_state, surrounds, validate_options, validate_points, weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
 use crate::model::init::InitialPose;
@@ -69,6 +70,16 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     let norm = Normalization::of(points);
     let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
     let candidates = initial_hypotheses(points, opts);
+    // As in `fit`: a tapered or bent fit seeds its start from the data's centreline, and keeps
+    // the coverage springs on in its global stages when the data surrounds the model.
+    let seed_tess = Tessellation::new(opts.k);
+    let whole = surrounds(&seed_tess, opts, &unit, &norm, &candidates);
+    let spawn = Spawner {
+        opts,
+        unit: &unit,
+        tess: &seed_tess,
+        whole,
+    };
     let mut app = App::new();
     app.add_plugins((MinimalPlugins, DeformableSqPlugin::in_schedule(Update)));
     let share = opts.max_steps as u64 / candidates.len() as u64;
@@ -76,7 +87,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         .iter()
         .map(|initial| {
             let driver = FitDriver::new(*opts, global_stages(opts), share);
-            spawn_model(&mut app, opts, &unit, &norm.pose_to_unit(initial), driver)
+            spawn.model(&mut app, &norm.pose_to_unit(initial), driver)
         })
         .collect();
     let max_updates = opts.max_steps as u64 + 10;
@@ -117,7 +128,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         if let Some(dual) = cross_section_dual(&InitialPose::of(&state)) {
             let budget = (opts.max_steps as u64).saturating_sub(other_steps + steps_of(&app, e));
             let driver = FitDriver::new(*opts, [Stage::Global], budget);
-            let other = spawn_model(&mut app, opts, &unit, &dual, driver);
+            let other = spawn.model(&mut app, &dual, driver);
             run_until_done(&mut app, max_updates)?;
             let other_score = distance_of(&app, other, &tess, &unit)?;
             if other_score < score {
@@ -139,7 +150,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
             placed = Some(state_of(app.world(), e).ok_or(FitError::Degenerate)?);
         }
         let cap = (opts.max_steps as u64).saturating_sub(other_steps);
-        let (stage, undone_steps) = refine(&mut app, e, cap, score, &tess, &unit)?;
+        let (stage, undone_steps) = refine(&mut app, e, cap, score, &tess, &unit, opts)?;
         other_steps += undone_steps;
         refinement = Some(stage);
     }
@@ -171,13 +182,13 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         ) as u64;
         for candidate in candidates {
             let driver = FitDriver::new(*opts, [Stage::Global], cap);
-            let other = spawn_model(&mut app, opts, &unit, &candidate, driver);
+            let other = spawn.model(&mut app, &candidate, driver);
             run_until_done(&mut app, max_updates)?;
             // As in `fit`: scored after the global stage, and again only after a kept refinement.
             let mut other_score = weighted(&app, other)?;
             if opts.refine && placed.is_none_or(|chosen| refine_candidate(other_score, chosen)) {
                 let before = distance_of(&app, other, &tess, &unit)?;
-                let (stage, undone) = refine(&mut app, other, cap, before, &tess, &unit)?;
+                let (stage, undone) = refine(&mut app, other, cap, before, &tess, &unit, opts)?;
                 other_steps += undone;
                 if stage.kept {
                     other_score = weighted(&app, other)?;
@@ -255,41 +266,45 @@ fn steps_of(app: &App, e: Entity) -> u64 {
     app.world().get::<SimControl>(e).map_or(0, |c| c.steps)
 }
 
-/// Spawns a model of `opts` at `start` (the fit's unit frame) pulled by the `unit` points.
-fn spawn_model(
-    app: &mut App,
-    opts: &FitOptions,
-    unit: &[DVec3],
-    start: &InitialPose,
-    driver: FitDriver,
-) -> Entity {
-    let mut range = RangeForces::new(unit.to_vec(), opts.beta, opts.influence);
-    range.coverage = 0.0;
-    app.world_mut()
-        .spawn((
-            GlobalShape::from(start.shape.normalized()),
-            RigidState {
-                translation: start.translation,
-                rotation: start.rotation,
-            },
-            FemMesh::new(opts.k),
-            ModelSettings::from_fit(opts),
-            RangeData {
-                forces: range,
-                reassignments: 0,
-            },
-            driver,
-        ))
-        .id()
+/// What every model of one headless fit is spawned with: the options, the `unit` points, a
+/// tessellation for the seeded start, and whether the global stages keep the coverage springs.
+struct Spawner<'a> {
+    opts: &'a FitOptions,
+    unit: &'a [DVec3],
+    tess: &'a Tessellation,
+    whole: bool,
+}
+
+impl Spawner<'_> {
+    /// Spawns a model at `start` (the fit's unit frame) pulled by the points, in `fit`'s start
+    /// state there ([`start_state`]: with tapering or bending free, seeded from the centreline).
+    fn model(&self, app: &mut App, start: &InitialPose, mut driver: FitDriver) -> Entity {
+        let opts = self.opts;
+        let state = start_state(self.tess, opts, self.unit, start);
+        let mut range = RangeForces::new(self.unit.to_vec(), opts.beta, opts.influence);
+        range.coverage = 0.0;
+        driver.global_coverage = self.whole;
+        app.world_mut()
+            .spawn((
+                GlobalShape::new(state.shape, state.deformation),
+                RigidState {
+                    translation: state.translation,
+                    rotation: state.rotation,
+                },
+                FemMesh::new(opts.k),
+                ModelSettings::from_fit(opts),
+                RangeData {
+                    forces: range,
+                    reassignments: 0,
+                },
+                driver,
+            ))
+            .id()
+    }
 }
 
 /// The mean distance of the `unit` points to the surface of model `e`.
-fn distance_of(
-    app: &App,
-    e: Entity,
-    tess: &crate::model::fem::Tessellation,
-    unit: &[DVec3],
-) -> Result<f64, FitError> {
+fn distance_of(app: &App, e: Entity, tess: &Tessellation, unit: &[DVec3]) -> Result<f64, FitError> {
     let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
     let mut x = Vec::new();
     state.node_positions(tess, &mut x);
@@ -307,8 +322,9 @@ fn refine(
     e: Entity,
     cap: u64,
     score: f64,
-    tess: &crate::model::fem::Tessellation,
+    tess: &Tessellation,
     unit: &[DVec3],
+    opts: &FitOptions,
 ) -> Result<(Refinement, u64), FitError> {
     let world = app.world();
     let snapshot = (
@@ -342,6 +358,9 @@ fn refine(
     }
     let (mut least, mut gave_up, mut seen) = (score, false, start);
     let mut previous = None;
+    // As in `fit`: a tapered or bent fit keeps the closest state its checks saw.
+    let deforms = opts.dynamics.free.taper || opts.dynamics.free.bend;
+    let mut best: Option<(f64, RigidState, GlobalShape, LocalDofs)> = None;
     for _ in 0..=budget.saturating_sub(start) + 10 {
         app.update();
         let world = app.world();
@@ -380,6 +399,17 @@ fn refine(
             let mut x = Vec::new();
             state.node_positions(tess, &mut x);
             let (distance, weighted) = refine_distances(tess, &x, &range.forces);
+            if deforms && best.as_ref().is_none_or(|b| distance < b.0) {
+                let world = app.world();
+                let components = (
+                    world.get::<RigidState>(e).cloned(),
+                    world.get::<GlobalShape>(e).cloned(),
+                    world.get::<LocalDofs>(e).cloned(),
+                );
+                if let (Some(r), Some(g), Some(l)) = components {
+                    best = Some((distance, r, g, l));
+                }
+            }
             let stalled = refine_stalled(weighted, previous);
             previous = Some(weighted);
             match refine_check(distance, least) {
@@ -396,9 +426,26 @@ fn refine(
     }
     let world = app.world();
     let at_rest = !gave_up && world.get::<FitDriver>(e).is_some_and(|d| d.converged);
-    let after = distance_of(app, e, tess, unit)?;
+    let mut after = distance_of(app, e, tess, unit)?;
     let steps = steps_of(app, e) - start;
-    let kept = at_rest && after <= score;
+    let mut kept = at_rest && after <= score;
+    if let Some((distance, r, g, l)) = best
+        && !kept
+        && distance <= score
+    {
+        // The closest state, and the model stopped there as `fit`'s relaxation stops (a stage
+        // given up is still running).
+        let mut entity = app.world_mut().entity_mut(e);
+        entity.insert((r, g, l));
+        if let Some(mut driver) = entity.get_mut::<FitDriver>() {
+            driver.stages.clear();
+            (driver.clock, driver.done) = (None, true);
+        }
+        if let Some(mut control) = entity.get_mut::<SimControl>() {
+            control.paused = true;
+        }
+        (after, kept) = (distance, true);
+    }
     if !kept {
         app.world_mut()
             .entity_mut(e)

@@ -145,7 +145,12 @@ pub fn reassign(
                     match (driver.done, driver.clock, driver.stages.front().copied()) {
                         (false, None, Some(stage)) => {
                             let clock = StageClock::new(stage);
-                            range.forces.coverage = clock.coverage(&driver.options);
+                            range.forces.coverage =
+                                if driver.global_coverage && stage == Stage::Global {
+                                    driver.options.coverage
+                                } else {
+                                    clock.coverage(&driver.options)
+                                };
                             range.forces.plane = clock.plane(&driver.options);
                             range.forces.mode = clock.influence(&driver.options);
                             let ratio = driver.options.outlier_ratio;
