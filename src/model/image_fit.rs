@@ -278,6 +278,8 @@ pub struct ImageFitOptions {
     pub fix_epsilon: bool,
     /// Run the global DOFs to rest before freeing the local ones.
     pub global_first: bool,
+    /// Free the local DOFs at all; false: the global stage only (a pure superquadric per part).
+    pub local: bool,
     /// Rest: no node moves more than this × the image extent in a step, or in the last
     /// [`REST_WINDOW`] steps together (a part that only jitters in place as its outline nodes
     /// switch).
@@ -299,6 +301,7 @@ impl Default for ImageFitOptions {
             planar: true,
             fix_epsilon: true,
             global_first: true,
+            local: true,
             tolerance: 1e-5,
             max_steps: 3000,
         }
@@ -469,10 +472,10 @@ pub fn fit_part(
     let mut nf = NodalForces::new(tess.node_count());
     let mut scratch = ImageScratch::default();
     ws.prepare(tess, &state);
-    let stages: &[bool] = if opts.global_first {
-        &[false, true]
-    } else {
-        &[true]
+    let stages: &[bool] = match (opts.local, opts.global_first) {
+        (false, _) => &[false],
+        (true, true) => &[false, true],
+        (true, false) => &[true],
     };
     let rest = opts.tolerance * forces.potential.frame().extent;
     let (mut steps, mut global_steps, mut converged) = (0, 0, true);
@@ -679,6 +682,33 @@ mod tests {
             after > 0.9 && after > before + 0.1,
             "IoU {before} -> {after}"
         );
+    }
+
+    #[test]
+    fn without_the_local_stage_a_part_stays_a_superquadric() {
+        let (w, h) = (160, 160);
+        let pot = potential(
+            ellipse_image(w, h, DVec2::new(80.0, 80.0), 50.0, 22.0, 0.3),
+            w,
+            h,
+        );
+        let start = PartAxes {
+            center: pot.to_plane(DVec2::new(86.0, 76.0)),
+            major: DVec2::from_angle(-0.1) * 40.0 * pot.pitch(),
+            minor: 26.0 * pot.pitch(),
+        };
+        let opts = |local| ImageFitOptions {
+            k: 16,
+            local,
+            ..Default::default()
+        };
+        let global = &fit_image(pot.clone(), &[start], &opts(false)).unwrap()[0];
+        assert_eq!(global.steps, global.global_steps);
+        assert!(global.state.displacement.iter().all(|d| *d == DVec3::ZERO));
+        assert!(global.outline_after > global.outline_before + 0.2);
+        let both = &fit_image(pot.clone(), &[start], &opts(true)).unwrap()[0];
+        assert!(both.steps > both.global_steps);
+        assert!(both.state.displacement.iter().any(|d| *d != DVec3::ZERO));
     }
 
     #[test]

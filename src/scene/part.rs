@@ -386,6 +386,7 @@ impl PartDef {
             planar: self.planar(),
             fix_epsilon: self.fix_epsilon(),
             global_first: self.fit.global_first,
+            local: !self.free.global_only,
             tolerance: self.fit.tolerance.unwrap_or(defaults.tolerance),
             max_steps: self
                 .fit

@@ -97,7 +97,8 @@ pub struct FitArgs {
     #[arg(long, help_heading = "Output")]
     pub quiet: bool,
 
-    /// A pure superquadric: the local DOFs stay frozen.
+    /// A pure superquadric: the local DOFs stay frozen (for an image, each part's global
+    /// stage only).
     #[arg(long, help_heading = "Point clouds")]
     pub global_only: bool,
     /// Start from the paper's forces and stiffness (equal weights, nearest-node springs,
@@ -372,6 +373,9 @@ impl FitArgs {
         }
         if self.paper_band {
             image.options.outline_only = false;
+        }
+        if self.global_only {
+            image.options.local = false;
         }
         if self.free_depth {
             image.options.planar = false;
