@@ -221,11 +221,7 @@ impl<'a> Relaxation<'a> {
         let tess = self.tess;
         let mut clock = StageClock::new(stage);
         self.params.free.local = clock.local_free(self.opts);
-        self.range.coverage = if self.global_coverage && stage == Stage::Global {
-            self.opts.coverage
-        } else {
-            clock.coverage(self.opts)
-        };
+        self.range.coverage = clock.coverage(self.opts, self.global_coverage);
         self.range.plane = clock.plane(self.opts);
         self.range.mode = clock.influence(self.opts);
         self.range.reassign(tess, &self.x);

@@ -146,11 +146,7 @@ pub fn reassign(
                         (false, None, Some(stage)) => {
                             let clock = StageClock::new(stage);
                             range.forces.coverage =
-                                if driver.global_coverage && stage == Stage::Global {
-                                    driver.options.coverage
-                                } else {
-                                    clock.coverage(&driver.options)
-                                };
+                                clock.coverage(&driver.options, driver.global_coverage);
                             range.forces.plane = clock.plane(&driver.options);
                             range.forces.mode = clock.influence(&driver.options);
                             let ratio = driver.options.outlier_ratio;

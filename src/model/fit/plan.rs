@@ -174,9 +174,11 @@ impl StageClock {
         }
     }
 
-    /// Coverage-spring density in this stage (only the placing stage has them).
-    pub fn coverage(&self, opts: &FitOptions) -> f64 {
-        if self.stage == Stage::Cover {
+    /// Coverage-spring density in this stage: the placing stage has them, and with
+    /// `global_coverage` (a tapered or bent fit of data that surrounds the model, beyond the
+    /// paper) the global stage too.
+    pub fn coverage(&self, opts: &FitOptions, global_coverage: bool) -> f64 {
+        if self.stage == Stage::Cover || (global_coverage && self.stage == Stage::Global) {
             opts.coverage
         } else {
             0.0
