@@ -312,16 +312,15 @@ impl ImagePotential {
     /// the background outside; 0 where the part would lie outside the object (a part flattened
     /// onto one edge has one side of each kind). 0 off the image or where the image is flat.
     pub fn edge_facing(&self, x: DVec2, n: DVec2) -> f64 {
-        self.edge_facing_on(self.locate(x), n)
+        self.cell(x)
+            .map_or(0.0, |cell| self.edge_facing_in(&cell, n))
     }
 
-    /// [`Self::edge_facing`] of a located point.
-    fn edge_facing_on(&self, at: Option<OnImage>, n: DVec2) -> f64 {
-        at.map_or(0.0, |p| {
-            let g = bilinear(&self.brightening, &self.cell_at(p));
-            let dir = (self.foreground_polarity * g).normalize_or_zero();
-            dir.dot(n).clamp(0.0, 1.0)
-        })
+    /// [`Self::edge_facing`] at a point whose pixel cell has been looked up.
+    fn edge_facing_in(&self, cell: &Cell, n: DVec2) -> f64 {
+        let g = bilinear(&self.brightening, cell);
+        let dir = (self.foreground_polarity * g).normalize_or_zero();
+        dir.dot(n).clamp(0.0, 1.0)
     }
 
     /// True when the pixel under a plane point is foreground (false off the image).
@@ -387,12 +386,12 @@ impl ImagePotential {
 
     /// The four pixels around a plane point and their bilinear weights N_k (the quadrilateral
     /// element of Fig. 10 with a = b = 1); `None` off the image.
-    fn cell(&self, x: DVec2) -> Option<([usize; 4], [f64; 4])> {
+    fn cell(&self, x: DVec2) -> Option<Cell> {
         self.locate(x).map(|p| self.cell_at(p))
     }
 
     /// [`Self::cell`] of an image point.
-    fn cell_at(&self, OnImage(p): OnImage) -> ([usize; 4], [f64; 4]) {
+    fn cell_at(&self, OnImage(p): OnImage) -> Cell {
         let c = p.x.clamp(0.0, (self.width - 1) as f64);
         let r = p.y.clamp(0.0, (self.height - 1) as f64);
         // c, r ≥ 0 after the clamp, so truncation is the floor (without a call: `floor` is not
@@ -422,17 +421,19 @@ impl ImagePotential {
     /// [`Self::gradient_at`] and [`Self::potential_at`] together, from one lookup of the pixel
     /// cell: the same values to the bit.
     pub fn gradient_and_potential_at(&self, x: DVec2) -> (DVec2, f64) {
-        self.gradient_and_potential_on(self.locate(x))
+        self.cell(x).map_or((DVec2::ZERO, 0.0), |cell| {
+            self.gradient_and_potential_in(&cell)
+        })
     }
 
     /// [`Self::gradient_and_potential_at`] of a located point (zero off the image).
-    fn gradient_and_potential_on(&self, at: Option<OnImage>) -> (DVec2, f64) {
-        at.map_or((DVec2::ZERO, 0.0), |p| {
-            let cell = self.cell_at(p);
-            (bilinear(&self.grad, &cell), bilinear(&self.p, &cell))
-        })
+    fn gradient_and_potential_in(&self, cell: &Cell) -> (DVec2, f64) {
+        (bilinear(&self.grad, cell), bilinear(&self.p, cell))
     }
 }
+
+/// The four pixels around a point and their bilinear weights ([`ImagePotential::cell`]).
+type Cell = ([usize; 4], [f64; 4]);
 
 /// The pixel position of a plane point that lies on the image ([`ImagePotential::locate`]).
 #[derive(Clone, Copy, Debug)]
@@ -456,7 +457,7 @@ fn nearest_index(p: f64) -> usize {
 }
 
 /// Σ_k N_k v_k over the four pixels of a [`ImagePotential::cell`] lookup.
-fn bilinear<T>(values: &[T], (idx, w): &([usize; 4], [f64; 4])) -> T
+fn bilinear<T>(values: &[T], (idx, w): &Cell) -> T
 where
     T: Copy + std::iter::Sum,
     f64: std::ops::Mul<T, Output = T>,
@@ -653,13 +654,17 @@ impl ImageForces {
                 };
                 out.force[i] += (sign * push * a * n).extend(0.0);
             }
+            // One lookup of the pixel cell for every value sampled there.
+            let cell = at.map(|p| self.potential.cell_at(p));
             // An oriented outline feels only the edges that face its outward normal.
-            let facing = if self.oriented {
-                self.potential.edge_facing_on(at, n)
-            } else {
-                1.0
+            let facing = match (&cell, self.oriented) {
+                (_, false) => 1.0,
+                (Some(cell), true) => self.potential.edge_facing_in(cell, n),
+                (None, true) => 0.0,
             };
-            let (g, p) = self.potential.gradient_and_potential_on(at);
+            let (g, p) = cell.as_ref().map_or((DVec2::ZERO, 0.0), |cell| {
+                self.potential.gradient_and_potential_in(cell)
+            });
             let near_edge = (p / self.potential.p_ref()).clamp(0.0, 1.0);
             out.force[i] += facing * self.beta * a * DVec3::new(g.x, g.y, 0.0);
             out.stiffness[i] += kappa * a * (FLAT_WEIGHT + (1.0 - FLAT_WEIGHT) * near_edge);
