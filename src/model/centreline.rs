@@ -42,13 +42,14 @@ struct Slice {
 /// too (where a spread from the variance would be too small by √2).
 pub const SPREAD_QUANTILE: f64 = 0.9;
 
-/// Weighted least squares of `y ≈ c0 + c1 x + c2 x²` over `(w, x, y)` (or of a line when
-/// `quadratic` is false, with c2 = 0).
-fn polyfit(samples: &[(f64, f64, f64)], quadratic: bool) -> Option<[f64; 3]> {
+/// The normal equations Σ w φ φᵀ c = Σ w φ y of a weighted least-squares fit over
+/// `(w, φ, y)` samples with three basis values φ each.
+fn normal_equations(
+    samples: impl Iterator<Item = (f64, [f64; 3], f64)>,
+) -> ([[f64; 3]; 3], [f64; 3]) {
     let mut a = [[0.0; 3]; 3];
     let mut b = [0.0; 3];
-    for &(w, x, y) in samples {
-        let basis = [1.0, x, if quadratic { x * x } else { 0.0 }];
+    for (w, basis, y) in samples {
         for i in 0..3 {
             b[i] += w * basis[i] * y;
             for j in 0..3 {
@@ -56,6 +57,17 @@ fn polyfit(samples: &[(f64, f64, f64)], quadratic: bool) -> Option<[f64; 3]> {
             }
         }
     }
+    (a, b)
+}
+
+/// Weighted least squares of `y ≈ c0 + c1 x + c2 x²` over `(w, x, y)` (or of a line when
+/// `quadratic` is false, with c2 = 0).
+fn polyfit(samples: &[(f64, f64, f64)], quadratic: bool) -> Option<[f64; 3]> {
+    let (mut a, mut b) = normal_equations(
+        samples
+            .iter()
+            .map(|&(w, x, y)| (w, [1.0, x, if quadratic { x * x } else { 0.0 }], y)),
+    );
     if !quadratic {
         // c2 is pinned to 0.
         a[2] = [0.0, 0.0, 1.0];
@@ -67,18 +79,11 @@ fn polyfit(samples: &[(f64, f64, f64)], quadratic: bool) -> Option<[f64; 3]> {
 /// The circle through weighted points (z, w) by the algebraic fit z² + w² + D z + E w + F = 0:
 /// its centre and radius.
 fn circle_fit(samples: &[(f64, f64, f64)]) -> Option<(DVec2, f64)> {
-    let mut a = [[0.0; 3]; 3];
-    let mut b = [0.0; 3];
-    for &(weight, z, w) in samples {
-        let basis = [z, w, 1.0];
-        let rhs = -(z * z + w * w);
-        for i in 0..3 {
-            b[i] += weight * basis[i] * rhs;
-            for j in 0..3 {
-                a[i][j] += weight * basis[i] * basis[j];
-            }
-        }
-    }
+    let (a, b) = normal_equations(
+        samples
+            .iter()
+            .map(|&(weight, z, w)| (weight, [z, w, 1.0], -(z * z + w * w))),
+    );
     let [d, e, f] = cholesky_solve(&a, &b)?;
     let centre = DVec2::new(-0.5 * d, -0.5 * e);
     let r2 = centre.length_squared() - f;
@@ -137,7 +142,11 @@ pub fn seed_deformation(
         .map(|p| to_local * (*p - pose.translation))
         .collect();
     let mut z: Vec<f64> = local.iter().map(|p| p.z).collect();
-    let (lo, hi) = (quantile(&mut z, 0.01), quantile(&mut z, 0.99));
+    z.sort_by(f64::total_cmp);
+    let (lo, hi) = (
+        super::init::quantile(&z, 0.01),
+        super::init::quantile(&z, 0.99),
+    );
     let half_chord = 0.5 * (hi - lo);
     if !(half_chord > 0.0 && half_chord.is_finite()) {
         return None;
@@ -270,12 +279,12 @@ const SPACING_SAMPLE: usize = 256;
 /// unseen side has no data near it.
 pub fn seen_whole(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3], smallest: f64) -> bool {
     use kiddo::SquaredEuclidean;
-    let Some(tree) = crate::model::forces::nearest::kd_tree(points) else {
-        return false;
-    };
     if node_x.is_empty() || points.len() < 2 {
         return false;
     }
+    let Some(tree) = crate::model::forces::nearest::kd_tree(points) else {
+        return false;
+    };
     let stride = (points.len() / SPACING_SAMPLE).max(1);
     let mut gaps: Vec<f64> = points
         .iter()
