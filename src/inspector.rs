@@ -270,6 +270,7 @@ fn dynamics_controls(ui: &mut egui::Ui, s: &mut ModelSettings) {
     ui.horizontal(|ui| {
         ui.checkbox(&mut s.fix_epsilon, "fix ε");
         ui.checkbox(&mut s.fix_shape, "fix shape (rigid)");
+        ui.checkbox(&mut s.fix_pose, "fix pose");
     });
     ui.horizontal(|ui| {
         ui.checkbox(&mut s.taper, "free taper");

@@ -88,7 +88,7 @@ fn settings() -> impl Strategy<Value = ModelSettings> {
             log_uniform(1e-2, 10.0),
             1u32..=1000,
         ),
-        prop::array::uniform8(any::<bool>()),
+        prop::array::uniform9(any::<bool>()),
     )
         .prop_map(|((w0, w1, dt), (gg, gl, every), f)| ModelSettings {
             w0,
@@ -105,6 +105,7 @@ fn settings() -> impl Strategy<Value = ModelSettings> {
             taper: f[5],
             bend: f[6],
             implicit_local: f[7],
+            fix_pose: f[8],
         })
 }
 

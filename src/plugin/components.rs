@@ -224,6 +224,11 @@ pub struct ModelSettings {
     /// stretches instead of moving.
     #[cfg_attr(feature = "serialize", serde(default))]
     pub fix_shape: bool,
+    /// Freeze the model's translation and rotation: with `fix_shape`, the global DOFs held while
+    /// the membrane alone moves (a fit's joint stage on a finer tessellation,
+    /// [`FitOptions::k_from_data`]).
+    #[cfg_attr(feature = "serialize", serde(default))]
+    pub fix_pose: bool,
     /// Image-plane motion only, with the depth ratio a2 held (see
     /// [`FreeDofs::planar`](crate::model::dynamics::FreeDofs::planar)): for parts fitted to an
     /// image.
@@ -271,6 +276,7 @@ impl ModelSettings {
             hold_local_steps: 0,
             fix_epsilon: !(d.free.shape[4] || d.free.shape[5]),
             fix_shape: !d.free.shape.iter().any(|&f| f),
+            fix_pose: !d.free.translation && !d.free.rotation,
             planar: d.free.planar,
             taper: d.free.taper,
             bend: d.free.bend,
@@ -287,8 +293,10 @@ impl ModelSettings {
 
     /// The core's dynamics parameters.
     pub fn dynamics(&self) -> DynamicsParams {
-        let free = FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon)
+        let mut free = FreeDofs::with(!self.global_only, self.planar, self.fix_epsilon)
             .beyond_the_paper(self.fix_shape, self.taper, self.bend);
+        free.translation &= !self.fix_pose;
+        free.rotation &= !self.fix_pose;
         DynamicsParams {
             w0: self.w0,
             w1: self.w1,

@@ -161,6 +161,7 @@ pub fn part_settings(part: &PartDef) -> ModelSettings {
         hold_local_steps: 0,
         fix_epsilon: part.fix_epsilon(),
         fix_shape: part.free.fix_shape,
+        fix_pose: false,
         planar: part.planar(),
         taper: part.free.taper,
         bend: part.free.bend,
