@@ -626,3 +626,23 @@ fn the_levenberg_marquardt_solver_fits_a_clean_cloud_in_far_fewer_steps() {
     assert_bad_input(&[cloud, "--solver", "lm", "--taper"], "--solver", "taper");
     assert_bad_input(&["--paper", "egg", "--solver", "lm"], "--solver", "points");
 }
+
+#[test]
+fn a_dense_scan_goes_on_to_a_finer_tessellation_unless_one_is_given() {
+    let cloud = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/data/hippo1_scan.obj");
+    let nodes = |extra: &[&str]| {
+        let mut args = vec![cloud, "--quiet"];
+        args.extend_from_slice(extra);
+        let line = json_lines(&run(&args)).remove(0);
+        (line["nodes"].as_u64().unwrap(), line["mean"].as_f64().unwrap())
+    };
+    let (chosen, chosen_mean) = nodes(&[]);
+    let (given, given_mean) = nodes(&["--k", "31"]);
+    assert_eq!(given, 963);
+    assert_eq!(nodes(&["--nodes", "963"]).0, 963);
+    // K = 93 on this machine: 8651 nodes.
+    assert!((3000..=10_203).contains(&chosen), "{chosen} nodes");
+    assert!(chosen_mean < given_mean, "{chosen_mean} vs {given_mean}");
+    // A pure superquadric has no membrane to refine.
+    assert_eq!(nodes(&["--global-only"]).0, 963);
+}

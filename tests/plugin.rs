@@ -547,7 +547,30 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
     };
     deformed.dynamics.free.taper = true;
     deformed.dynamics.free.bend = true;
-    let cases = cases.chain([(&cone, deformed), (&cone, deformed.for_data())]);
+    // A dense one-view cloud with local DOFs: the joint stage goes on to a finer tessellation
+    // chosen from the data (`FitOptions::k_from_data`).
+    let half: Vec<DVec3> = superquadric_cloud(
+        &shape,
+        DVec3::ZERO,
+        DQuat::from_rotation_y(0.3),
+        1200,
+        0.005,
+        79,
+    )
+    .into_iter()
+    .filter(|p| p.z > 0.0)
+    .collect();
+    let dense = FitOptions {
+        k: 11,
+        ..Default::default()
+    }
+    .for_data();
+    let cases = cases.chain([
+        (&cone, deformed),
+        (&cone, deformed.for_data()),
+        (&half, dense),
+    ]);
+    let mut retessellated = false;
     let mut switched = false;
     for (points, opts) in cases {
         let (global_only, point_to_plane) = (opts.global_only, opts.point_to_plane);
@@ -569,6 +592,8 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
             "global_only {global_only}: states differ"
         );
         assert_eq!(app.residuals, core.residuals);
+        assert_eq!(app.tess.k, core.tess.k);
+        retessellated |= core.tess.k > opts.k;
         eprintln!(
             "global_only {global_only}: {} steps, {:?}, refinement {:?}, {:?}",
             app.steps, app.residuals, app.refinement, app.state.deformation
@@ -578,6 +603,7 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
         switched,
         "the cross-section dual was chosen in no robust case"
     );
+    assert!(retessellated, "no case went on to a finer tessellation");
 }
 
 #[cfg(feature = "serialize")]

@@ -636,6 +636,15 @@ impl Tessellation {
         }
     }
 
+    /// A nodal field on `coarse` carried onto this tessellation: each node takes the field's
+    /// interpolation at its material point (u, v) in `coarse`'s element there (eq. 22's N_i).
+    pub fn prolong(&self, coarse: &Tessellation, field: &[DVec3]) -> Vec<DVec3> {
+        self.uv
+            .iter()
+            .map(|&[u, v]| coarse.locate(u, v).interpolate(|i| field[i]))
+            .collect()
+    }
+
     /// Smooth vertex normals of the surface through node positions `x`: the area-weighted sum of
     /// the normals of the render triangles round each node, normalised (zero where they cancel).
     /// Outward on a superquadric.

@@ -210,6 +210,27 @@ impl<'a> Relaxation<'a> {
         }
     }
 
+    /// This relaxation moved onto `tess`, another tessellation of the same surface: the global
+    /// state is kept, the local displacements are carried over ([`Tessellation::prolong`]), and
+    /// the springs are reattached when the next stage starts.
+    fn retessellate<'b>(self, tess: &'b Tessellation) -> Relaxation<'b>
+    where
+        'a: 'b,
+    {
+        let mut state = self.state;
+        state.displacement = tess.prolong(self.tess, &state.displacement);
+        let mut x = Vec::new();
+        state.node_positions(tess, &mut x);
+        Relaxation {
+            tess,
+            state,
+            ws: Workspace::default(),
+            forces: NodalForces::new(tess.node_count()),
+            x,
+            ..self
+        }
+    }
+
     /// Runs `stage` until it is over (true; see [`StageClock::after_step`]), or until `budget`
     /// total steps (false).
     fn run(
@@ -447,7 +468,8 @@ pub(crate) fn start_state(
 /// one whose surface lies closest to the data goes on. Between choosing and the joint stage, the
 /// options may add the cross-section switch ([`FitOptions::switch_cross_section`]), the
 /// refining stage ([`FitOptions::refine`]) and, after it, the similarity switch
-/// ([`FitOptions::similarity_switch`]).
+/// ([`FitOptions::similarity_switch`]). With [`FitOptions::k_from_data`] the joint stage goes on
+/// to a finer tessellation chosen from the data ([`joint_k`]).
 pub fn fit(
     points: &[DVec3],
     opts: &FitOptions,
@@ -463,6 +485,10 @@ pub fn fit(
         return fit_lm(points, opts, &norm, &unit, &candidates, tess, &mut progress);
     }
     let whole = surrounds(&tess, opts, &unit, &norm, &candidates);
+    // The joint stage's tessellation, when it is not `tess` ([`FitOptions::k_from_data`]).
+    let mut fine = None;
+    // The options of a joint stage on that finer tessellation.
+    let finer_opts = implicit_joint_options(opts);
     // Each hypothesis gets an equal share of the step cap (as in the plugin's fit driver).
     let share = opts.max_steps / candidates.len().max(1) as u32;
     let run = |initial: &InitialPose, progress: &mut dyn FnMut(&FitProgress)| {
@@ -571,8 +597,22 @@ pub fn fit(
         }
     }
     if has_joint_stage(opts) {
+        let k = if opts.k_from_data {
+            joint_k(&tess, &relax.x, relax.range.points(), opts.k)
+        } else {
+            opts.k
+        };
         let budget = opts.max_steps.saturating_sub(other_steps);
         converged = relax.run(Stage::Joint, budget, &mut progress)?;
+        if k != tess.k {
+            // The membrane at rest on `tess` is the finer one's start (from zero displacements
+            // it came to rest 1.02–1.5× farther from the shipped scans), and the global DOFs
+            // at rest are held while it comes to rest again by implicit steps (with them free,
+            // the same fit at 2–4× the time).
+            relax = relax.retessellate(fine.insert(Tessellation::new(k)));
+            (relax.opts, relax.params) = (&finer_opts, finer_opts.dynamics);
+            converged = relax.run(Stage::Joint, budget, &mut progress)?;
+        }
     } else if opts.refine {
         let weights = relax.range.relative_weights();
         if let Some(shape) = extend_squareness(&tess, &relax.state, &unit, &weights) {
@@ -580,14 +620,17 @@ pub fn fit(
         }
     }
     let state = norm.state_to_data(&relax.state);
+    let (steps, global_steps) = (relax.steps + other_steps, relax.global_steps);
+    let (reassignments, substepped_steps) = (relax.reassignments, relax.substepped);
+    let tess = fine.unwrap_or(tess);
     let residuals = fit_residuals(&tess, &state, points);
     Ok(FitReport {
         state,
-        steps: relax.steps + other_steps,
-        global_steps: relax.global_steps,
-        reassignments: relax.reassignments,
+        steps,
+        global_steps,
+        reassignments,
         converged,
-        substepped_steps: relax.substepped,
+        substepped_steps,
         residuals,
         initial,
         tess,

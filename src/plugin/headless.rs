@@ -5,20 +5,23 @@
 //! the refining stage ([`FitOptions::refine`]) runs on the chosen one, which goes back to its
 //! state before the stage when the refinement is not kept, and the similarity switch
 //! ([`FitOptions::similarity_switch`]) runs each candidate as one more entity, and a pure
-//! superquadric ends with the squareness extension (`fit::extend_squareness`) — as `fit` does.
+//! superquadric ends with the squareness extension (`fit::extend_squareness`), and a joint stage
+//! on a tessellation chosen from the data ([`FitOptions::k_from_data`]) goes on from the
+//! membrane at rest on the model's own mesh to the finer one — as `fit` does.
 
 use super::{
-    DeformableSqPlugin, FemMesh, FitDriver, GlobalShape, LocalDofs, ModelSettings, RangeData,
-    RigidState, SimControl,
+    DeformableSqPlugin, FemMesh, FemMeshCache, FitDriver, GlobalShape, LocalDofs, ModelSettings,
+    RangeData, RigidState, SimControl,
 };
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Normalization, REFINE_CHECK_EVERY, REFINE_MAX_STEPS,
     Refinement, Stage, cross_section_dual, extend_squareness, fit_residuals, global_stages,
-    has_joint_stage, initial_hypotheses, mean_distance, refine_candidate, refine_check,
-    refine_distances, refine_overgrown, refine_stalled, similarity_candidates, similarity_share,
-    start_state, surrounds, validate_options, validate_points, weighted_mean_distance,
+    has_joint_stage, implicit_joint_options, initial_hypotheses, joint_k, mean_distance,
+    refine_candidate, refine_check, refine_distances, refine_overgrown, refine_stalled,
+    similarity_candidates, similarity_share, start_state, surrounds, validate_options,
+    validate_points, weighted_mean_distance,
 };
 use crate::model::forces::range::RangeForces;
 use crate::model::init::InitialPose;
@@ -94,7 +97,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     run_until_done(&mut app, max_updates)?;
 
     // The hypothesis whose surface lies closest to the data goes on (first wins ties, as in `fit`).
-    let tess = app
+    let mut tess = app
         .world()
         .get::<FemMesh>(entities[0])
         .and_then(|f| f.get().cloned())
@@ -225,16 +228,40 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         }
     }
     if has_joint_stage(opts) {
+        let k = if opts.k_from_data {
+            let state = state_of(app.world(), e).ok_or(FitError::Degenerate)?;
+            state.node_positions(&tess, &mut x);
+            joint_k(&tess, &x, &unit, opts.k)
+        } else {
+            opts.k
+        };
         let budget = (opts.max_steps as u64).saturating_sub(other_steps);
-        app.world_mut()
-            .get_mut::<FitDriver>(e)
-            .ok_or(FitError::Degenerate)?
-            .continue_with([Stage::Joint], budget);
-        app.world_mut()
-            .get_mut::<SimControl>(e)
-            .ok_or(FitError::Degenerate)?
-            .paused = false;
-        run_until_done(&mut app, max_updates)?;
+        run_joint_stage(&mut app, e, budget, max_updates)?;
+        if k != tess.k {
+            // As in `fit`: the membrane at rest is carried onto the finer mesh and runs on.
+            let fine = app.world_mut().resource_mut::<FemMeshCache>().get(k);
+            let mut local = app
+                .world_mut()
+                .get_mut::<LocalDofs>(e)
+                .ok_or(FitError::Degenerate)?;
+            local.displacement = fine.prolong(&tess, &local.displacement);
+            let mut fem = app
+                .world_mut()
+                .get_mut::<FemMesh>(e)
+                .ok_or(FitError::Degenerate)?;
+            (fem.k, fem.tessellation) = (k, Some(fine.clone()));
+            // The global DOFs held, the membrane by implicit steps.
+            let finer = implicit_joint_options(opts);
+            *app.world_mut()
+                .get_mut::<ModelSettings>(e)
+                .ok_or(FitError::Degenerate)? = ModelSettings::from_fit(&finer);
+            app.world_mut()
+                .get_mut::<FitDriver>(e)
+                .ok_or(FitError::Degenerate)?
+                .options = finer;
+            run_joint_stage(&mut app, e, budget, max_updates)?;
+            tess = fine;
+        }
     }
     let world = app.world();
     let driver = world.get::<FitDriver>(e).ok_or(FitError::Degenerate)?;
@@ -251,6 +278,24 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         state,
         tess: (*tess).clone(),
     })
+}
+
+/// Runs model `e`'s joint stage through its driver, within `budget` steps of the model in all.
+fn run_joint_stage(
+    app: &mut App,
+    e: Entity,
+    budget: u64,
+    max_updates: u64,
+) -> Result<(), FitError> {
+    app.world_mut()
+        .get_mut::<FitDriver>(e)
+        .ok_or(FitError::Degenerate)?
+        .continue_with([Stage::Joint], budget);
+    app.world_mut()
+        .get_mut::<SimControl>(e)
+        .ok_or(FitError::Degenerate)?
+        .paused = false;
+    run_until_done(app, max_updates)
 }
 
 /// The inlier weights of model `e`'s points ([`RangeForces::relative_weights`]).

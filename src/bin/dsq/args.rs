@@ -430,6 +430,8 @@ impl FitArgs {
             if self.outliers.is_some() {
                 o.outlier_ratio = given.outlier_ratio;
             }
+            // A tessellation given is kept for every stage.
+            o.k_from_data &= self.k.is_none() && self.nodes.is_none();
             // (w0 and w1 act on the local DOFs only.)
             stiffness_from_noise |= !stiffness_given && !o.global_only;
         }

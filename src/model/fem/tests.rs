@@ -511,3 +511,43 @@ fn nodal_areas_sum_to_covered_area() {
     assert_eq!(t.area, total);
     assert!(t.node_area.iter().all(|&a| a > 0.0));
 }
+
+#[test]
+fn prolong_keeps_a_field_where_the_nodes_coincide_and_interpolates_between() {
+    // k = 3 → 15: every coarse ring is every fourth fine ring ((15 + 1) / (3 + 1)), every coarse
+    // longitude every fifth fine one (15 / 3), and both share the poles.
+    let (coarse, fine) = (Tessellation::new(3), Tessellation::new(15));
+    let field: Vec<DVec3> = (0..coarse.node_count())
+        .map(|i| DVec3::new(i as f64, (i * i) as f64 * 0.5, -(i as f64).sin()))
+        .collect();
+    let same = coarse.prolong(&coarse, &field);
+    assert_eq!(same, field, "onto itself a field is unchanged");
+    let onto = fine.prolong(&coarse, &field);
+    assert_eq!(onto.len(), fine.node_count());
+    let mut coincident = 0;
+    for (i, &[u, v]) in fine.uv.iter().enumerate() {
+        if let Some(j) = coarse
+            .uv
+            .iter()
+            .position(|c| (c[0] - u).abs() + (c[1] - v).abs() < 1e-12)
+        {
+            assert!(
+                onto[i].distance(field[j]) < 1e-9,
+                "node {i}: {} vs {}",
+                onto[i],
+                field[j]
+            );
+            coincident += 1;
+        }
+        // In between, a convex combination of the coarse values.
+        let (lo, hi) = field
+            .iter()
+            .fold((field[0], field[0]), |(lo, hi), f| (lo.min(*f), hi.max(*f)));
+        assert!(onto[i].cmpge(lo - 1e-9).all() && onto[i].cmple(hi + 1e-9).all());
+    }
+    assert_eq!(coincident, coarse.node_count());
+    let constant = vec![DVec3::new(0.25, -1.0, 2.0); coarse.node_count()];
+    for d in fine.prolong(&coarse, &constant) {
+        assert!(d.distance(constant[0]) < 1e-12);
+    }
+}

@@ -18,6 +18,11 @@ pub enum Initialization {
 pub struct FitOptions {
     /// Tessellation: k rings × k longitudes + 2 poles.
     pub k: usize,
+    /// After the joint stage on `k`, a dense cloud's membrane goes on to a finer tessellation
+    /// chosen from the data ([`joint_k`]), carried over from `k` and brought to rest there with
+    /// the global DOFs held ([`implicit_joint_options`]): nodes where the data's detail is. Off:
+    /// every stage keeps `k`. The report's `tess` is the final one.
+    pub k_from_data: bool,
     /// Stiffness, damping, time step and free DOFs.
     pub dynamics: DynamicsParams,
     /// Range-spring strength per unit material area.
@@ -84,6 +89,7 @@ impl Default for FitOptions {
     fn default() -> Self {
         Self {
             k: 31,
+            k_from_data: false,
             dynamics: DynamicsParams {
                 gamma_global: 0.05,
                 ..DynamicsParams::default()
@@ -133,7 +139,8 @@ impl FitOptions {
     /// both switches, i.e. [`FitOptions::robust`]. With local DOFs the refining stage and the
     /// switches are left as they are: they change the fitted surface by nothing measurable there
     /// (20 generated clouds with 20 % outliers: the same median inlier residual, 35 % more steps
-    /// for the refining stage and the cross-section switch). Pair it with [`FitOptions::with_stiffness_from_noise`] for fits with local DOFs.
+    /// for the refining stage and the cross-section switch). With local DOFs the joint stage's
+    /// tessellation is chosen from the data ([`FitOptions::k_from_data`]). Pair it with [`FitOptions::with_stiffness_from_noise`] for fits with local DOFs.
     pub fn for_data(self) -> Self {
         let base = if self.global_only {
             self.robust()
@@ -144,6 +151,7 @@ impl FitOptions {
             }
         };
         Self {
+            k_from_data: !self.global_only,
             outlier_ratio: if self.outlier_ratio > 0.0 {
                 self.outlier_ratio
             } else {

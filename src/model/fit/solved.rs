@@ -87,7 +87,7 @@ pub(super) fn fit_lm(
     norm: &Normalization,
     unit: &[DVec3],
     starts: &[InitialPose],
-    tess: Tessellation,
+    mut tess: Tessellation,
     progress: &mut impl FnMut(&FitProgress),
 ) -> Result<FitReport, FitError> {
     let starts: Vec<InitialPose> = starts.iter().map(|s| norm.pose_to_unit(s)).collect();
@@ -141,15 +141,35 @@ pub(super) fn fit_lm(
             let budget = opts.max_steps.saturating_sub(steps);
             placed.run(stage, budget, &mut |p: &FitProgress| progress(p))?;
         }
-        let joint = implicit_joint_options(opts);
-        let mut relax = Relaxation::new(&tess, &joint, unit, &InitialPose::of(&placed.state));
-        let budget = opts.max_steps.saturating_sub(steps + placed.steps);
-        converged = relax.run(Stage::Joint, budget, &mut |p: &FitProgress| progress(p))?;
-        steps += placed.steps + relax.steps;
+        let k = if opts.k_from_data {
+            joint_k(&tess, &placed.x, placed.range.points(), opts.k)
+        } else {
+            opts.k
+        };
+        let pose = InitialPose::of(&placed.state);
+        steps += placed.steps;
         global_steps += placed.steps;
-        reassignments = placed.reassignments + relax.reassignments;
-        substepped = placed.substepped;
-        state = relax.state;
+        (reassignments, substepped) = (placed.reassignments, placed.substepped);
+        drop(placed);
+        let joint = implicit_joint_options(opts);
+        let mut relax = Relaxation::new(&tess, &joint, unit, &pose);
+        let budget = opts.max_steps.saturating_sub(steps);
+        converged = relax.run(Stage::Joint, budget, &mut |p: &FitProgress| progress(p))?;
+        // The membrane at rest on `tess` is the finer one's start ([`FitOptions::k_from_data`]);
+        // the step count runs on through both.
+        let (joint_steps, joint_reassignments, joint_state) = if k != tess.k {
+            let fine = Tessellation::new(k);
+            let mut on_fine = relax.retessellate(&fine);
+            converged = on_fine.run(Stage::Joint, budget, &mut |p: &FitProgress| progress(p))?;
+            let out = (on_fine.steps, on_fine.reassignments, on_fine.state);
+            tess = fine;
+            out
+        } else {
+            (relax.steps, relax.reassignments, relax.state)
+        };
+        steps += joint_steps;
+        reassignments += joint_reassignments;
+        state = joint_state;
     } else if opts.refine {
         let weights = if fit.weights.is_empty() {
             vec![1.0; unit.len()]

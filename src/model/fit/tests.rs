@@ -340,3 +340,36 @@ fn the_cross_section_dual_turns_a_square_into_a_diamond_through_the_same_points(
         misfit(&unturned)
     );
 }
+
+#[test]
+fn joint_k_is_finer_for_a_dense_cloud_on_a_small_share_of_the_surface() {
+    let tess = Tessellation::new(31);
+    let mut x = Vec::new();
+    let sphere = SuperquadricParams::default();
+    ModelState::new(&tess, DVec3::ZERO, DQuat::IDENTITY, sphere).node_positions(&tess, &mut x);
+    // Points on the sphere's cap z > 1/2 (a quarter of its area), `n` of them on a spiral.
+    let cap = |n: usize| -> Vec<DVec3> {
+        (0..n)
+            .map(|i| {
+                let z = 0.5 + 0.5 * (i as f64 + 0.5) / n as f64;
+                let phi = i as f64 * 2.399_963;
+                let r = (1.0 - z * z).sqrt();
+                DVec3::new(r * phi.cos(), r * phi.sin(), z)
+            })
+            .collect()
+    };
+    // The cap is a quarter of the area but, nearer the pole, 11 of the 31 rings and the pole:
+    // about 342 of the 963 nodes covered, a share of 0.355. 6000 points ask for
+    // 6000 / 2 / 0.355 ≈ 8450 nodes (k = 92), 12 000 for more than the cap.
+    let k = joint_k(&tess, &x, &cap(6000), 31);
+    assert!((88..=96).contains(&k), "k = {k}");
+    assert_eq!(joint_k(&tess, &x, &cap(12_000), 31), MAX_JOINT_K);
+    // 200 points on that cap cover at most 200 nodes: never coarser than the global stages'.
+    assert_eq!(joint_k(&tess, &x, &cap(200), 31), 31);
+    assert_eq!(joint_k(&tess, &x, &cap(200), 40), 40);
+    // 800 points ask for about 1130 nodes (k = 34), under 1.5 × 963: not worth a second stage.
+    assert_eq!(joint_k(&tess, &x, &cap(800), 31), 31);
+    assert!(joint_k(&tess, &x, &cap(1500), 31) > 38);
+    // No nodes to measure against: the given k.
+    assert_eq!(joint_k(&tess, &[], &cap(200), 31), 31);
+}
