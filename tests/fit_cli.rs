@@ -634,7 +634,10 @@ fn a_dense_scan_goes_on_to_a_finer_tessellation_unless_one_is_given() {
         let mut args = vec![cloud, "--quiet"];
         args.extend_from_slice(extra);
         let line = json_lines(&run(&args)).remove(0);
-        (line["nodes"].as_u64().unwrap(), line["mean"].as_f64().unwrap())
+        (
+            line["nodes"].as_u64().unwrap(),
+            line["mean"].as_f64().unwrap(),
+        )
     };
     let (chosen, chosen_mean) = nodes(&[]);
     let (given, given_mean) = nodes(&["--k", "31"]);
