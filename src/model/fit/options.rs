@@ -21,7 +21,8 @@ pub struct FitOptions {
     /// After the joint stage on `k`, a dense cloud's membrane goes on to a finer tessellation
     /// chosen from the data ([`joint_k`]), carried over from `k` and brought to rest there with
     /// the global DOFs held ([`implicit_joint_options`]): nodes where the data's detail is. Off:
-    /// every stage keeps `k`. The report's `tess` is the final one.
+    /// every stage keeps `k`. The report's `tess` is the final one. Honoured by [`fit`] and the
+    /// plugin's headless fit (`fit_headless`); a fit driver in a live app keeps its model's mesh.
     pub k_from_data: bool,
     /// Stiffness, damping, time step and free DOFs.
     pub dynamics: DynamicsParams,
