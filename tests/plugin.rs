@@ -835,6 +835,59 @@ fn a_model_with_inertia_keeps_moving_swings_on_a_spring_and_resets_to_rest() {
     assert!(v.linear.length() < 1e-12, "after re-tessellation {v:?}");
 }
 
+#[test]
+fn a_new_mesh_carries_the_membrane_and_the_state_a_reset_returns_to() {
+    // A membrane displaced by d everywhere, paused: after k changes it is d on every node of the
+    // new mesh (the interpolation of a constant), and a reset goes back to d on that mesh too.
+    let mut app = app();
+    let d = DVec3::new(0.02, -0.01, 0.03);
+    let e = app
+        .world_mut()
+        .spawn((
+            start_shape(),
+            RigidState::default(),
+            FemMesh::new(9),
+            LocalDofs {
+                displacement: vec![d; 9 * 9 + 2],
+            },
+            SimControl {
+                paused: true,
+                ..default()
+            },
+        ))
+        .id();
+    // (The first update runs no fixed step.)
+    let updates = |app: &mut App| (0..3).for_each(|_| app.update());
+    updates(&mut app);
+    assert!(app.world().get::<FemMesh>(e).unwrap().get().is_some());
+    app.world_mut()
+        .get_mut::<LocalDofs>(e)
+        .unwrap()
+        .displacement[0] = DVec3::ONE;
+    app.world_mut().get_mut::<FemMesh>(e).unwrap().k = 14;
+    updates(&mut app);
+    let carried = &app.world().get::<LocalDofs>(e).unwrap().displacement;
+    assert_eq!(carried.len(), 14 * 14 + 2);
+    // Node 0 is a pole on both meshes: it keeps its own displacement.
+    assert_eq!(carried[0], DVec3::ONE);
+    let moved = carried
+        .iter()
+        .filter(|&&c| (c - d).length() > 1e-12)
+        .count();
+    assert!(
+        moved > 0 && moved < carried.len() / 4,
+        "{moved} nodes off d"
+    );
+    app.world_mut()
+        .get_mut::<SimControl>(e)
+        .unwrap()
+        .reset_requested = true;
+    updates(&mut app);
+    let reset = &app.world().get::<LocalDofs>(e).unwrap().displacement;
+    assert_eq!(reset.len(), 14 * 14 + 2);
+    assert!(reset.iter().all(|&r| (r - d).length() < 1e-12), "{reset:?}");
+}
+
 /// The north pole of a global-only model: c + R (0, 0, a·a3).
 fn pole_of(app: &App, e: Entity) -> DVec3 {
     let (rigid, shape, _, _) = state_of(app, e);

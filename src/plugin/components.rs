@@ -147,7 +147,8 @@ pub struct LocalDofs {
 #[derive(Component, Reflect, Clone, Debug)]
 #[reflect(Component, Default, Debug)]
 pub struct FemMesh {
-    /// Rings and longitudes; change it and the model is re-tessellated (its local DOFs reset).
+    /// Rings and longitudes; change it and the model is re-tessellated (its local DOFs carried
+    /// onto the new mesh, [`Tessellation::prolong`]).
     pub k: usize,
     /// The tessellation for `k`, filled in on the first step.
     #[reflect(ignore)]

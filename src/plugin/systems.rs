@@ -34,7 +34,8 @@ pub fn first_non_finite(
     }
 }
 
-/// Stage `Prepare`: shares tessellations, sizes the local DOFs and buffers to the mesh, records
+/// Stage `Prepare`: shares tessellations, carries the local DOFs onto a changed mesh (sizes them
+/// to it when they fit neither), sizes the buffers to the mesh, records
 /// the spawn state, carries out resets, and freezes any model whose state was made non-finite
 /// from outside (naming the entity and component).
 pub fn prepare(
@@ -59,12 +60,29 @@ pub fn prepare(
         mut local,
         mut control,
         mut scratch,
-        range,
+        mut range,
         inertia,
     ) in &mut models
     {
         if fem.get().is_none() {
-            fem.tessellation = Some(cache.get(fem.k));
+            let new = cache.get(fem.k);
+            // Re-tessellated (`k` changed): the membrane, and the one a reset goes back to, are
+            // carried onto the new mesh (`Tessellation::prolong`), and the range springs are
+            // reattached on it.
+            if let Some(old) = fem.tessellation.replace(new.clone()) {
+                let carry = |l: &mut LocalDofs| {
+                    if l.displacement.len() == old.node_count() {
+                        l.displacement = new.prolong(&old, &l.displacement);
+                    }
+                };
+                carry(&mut local);
+                if let Some((_, _, initial)) = scratch.initial.as_mut() {
+                    carry(initial);
+                }
+                if let Some(range) = range.as_mut() {
+                    range.forces.detach();
+                }
+            }
         }
         let Some(tess) = fem.get().cloned() else {
             continue;
