@@ -73,18 +73,19 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     let norm = Normalization::of(points);
     let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
     let candidates = initial_hypotheses(points, opts);
+    let mut app = App::new();
+    app.add_plugins((MinimalPlugins, DeformableSqPlugin::in_schedule(Update)));
+    // The models' tessellation, shared through the plugin's cache.
+    let model_tess = app.world_mut().resource_mut::<FemMeshCache>().get(opts.k);
     // As in `fit`: a tapered or bent fit seeds its start from the data's centreline, and keeps
     // the coverage springs on in its global stages when the data surrounds the model.
-    let seed_tess = Tessellation::new(opts.k);
-    let whole = surrounds(&seed_tess, opts, &unit, &norm, &candidates);
+    let whole = surrounds(&model_tess, opts, &unit, &norm, &candidates);
     let spawn = Spawner {
         opts,
         unit: &unit,
-        tess: &seed_tess,
+        tess: &model_tess,
         whole,
     };
-    let mut app = App::new();
-    app.add_plugins((MinimalPlugins, DeformableSqPlugin::in_schedule(Update)));
     let share = opts.max_steps as u64 / candidates.len() as u64;
     let entities: Vec<Entity> = candidates
         .iter()
@@ -97,11 +98,7 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     run_until_done(&mut app, max_updates)?;
 
     // The hypothesis whose surface lies closest to the data goes on (first wins ties, as in `fit`).
-    let mut tess = app
-        .world()
-        .get::<FemMesh>(entities[0])
-        .and_then(|f| f.get().cloned())
-        .ok_or(FitError::Degenerate)?;
+    let mut tess = model_tess.clone();
     let mut best: Option<(f64, usize)> = None;
     let mut x = Vec::new();
     for (i, &e) in entities.iter().enumerate() {
@@ -238,29 +235,25 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
         let budget = (opts.max_steps as u64).saturating_sub(other_steps);
         run_joint_stage(&mut app, e, budget, max_updates)?;
         if k != tess.k {
-            // As in `fit`: the membrane at rest is carried onto the finer mesh and runs on.
-            let fine = app.world_mut().resource_mut::<FemMeshCache>().get(k);
-            let mut local = app
-                .world_mut()
-                .get_mut::<LocalDofs>(e)
-                .ok_or(FitError::Degenerate)?;
-            local.displacement = fine.prolong(&tess, &local.displacement);
-            let mut fem = app
-                .world_mut()
-                .get_mut::<FemMesh>(e)
-                .ok_or(FitError::Degenerate)?;
-            (fem.k, fem.tessellation) = (k, Some(fine.clone()));
-            // The global DOFs held, the membrane by implicit steps.
+            // As in `fit`: the membrane at rest is carried onto the finer mesh (the plugin does
+            // that when `FemMesh::k` changes) and runs on there, the global DOFs held, by
+            // implicit steps.
             let finer = implicit_joint_options(opts);
-            *app.world_mut()
-                .get_mut::<ModelSettings>(e)
+            let mut model = app.world_mut().entity_mut(e);
+            model.get_mut::<FemMesh>().ok_or(FitError::Degenerate)?.k = k;
+            *model
+                .get_mut::<ModelSettings>()
                 .ok_or(FitError::Degenerate)? = ModelSettings::from_fit(&finer);
-            app.world_mut()
-                .get_mut::<FitDriver>(e)
+            model
+                .get_mut::<FitDriver>()
                 .ok_or(FitError::Degenerate)?
                 .options = finer;
             run_joint_stage(&mut app, e, budget, max_updates)?;
-            tess = fine;
+            tess = app
+                .world()
+                .get::<FemMesh>(e)
+                .and_then(|f| f.get().cloned())
+                .ok_or(FitError::Degenerate)?;
         }
     }
     let world = app.world();
