@@ -4,7 +4,8 @@
 //! are required components with defaults. The state q of the paper is split as the users asked:
 //! [`RigidState`] (q_c, q_θ), [`GlobalShape`] (q_s), [`LocalDofs`] (q_d), on the tessellation of
 //! [`FemMesh`]. Every one of them may be changed from outside (an inspector); the next step reads
-//! them as they are.
+//! them as they are. What pulls on a model from outside (range data, an image, springs, joints)
+//! is in components of its own ([`RangeData`], [`ImageData`], [`SpringForces`], [`PartJoint`]).
 
 use crate::model::deform::GlobalDeformation;
 use crate::model::dynamics::{
@@ -13,13 +14,14 @@ use crate::model::dynamics::{
 use crate::model::fem::Tessellation;
 use crate::model::fit::{FitOptions, Stage, StageClock};
 use crate::model::forces::image::ImageScratch;
-use crate::model::forces::range::{InfluenceMode, RangeForces};
 use crate::model::inertia::{InertiaParams, InertiaWorkspace, Velocity};
-use crate::model::joint::{Joint, JointEnd};
 use crate::model::superquadric::SuperquadricParams;
 use bevy::math::{DQuat, DVec3};
 use bevy::prelude::*;
 use std::sync::Arc;
+
+mod forces;
+pub use forces::*;
 
 /// The global deformation parameters q_s = (a, a1, a2, a3, ε1, ε2) of eq. (5), and the tapering
 /// and bending q_T of [`crate::model::deform`] (zero for the paper's model).
@@ -340,39 +342,6 @@ impl Inertia {
     }
 }
 
-/// A point-to-point joint between the surfaces of two models ([`crate::model::joint`]): put it
-/// on an entity of its own. Each step it adds its constraint force (multiplier plus stabilising
-/// spring) to both models' global coordinates; `joint.multiplier` is the force it transmits to
-/// `a`, and `gap` the distance between its ends at the last step. A joint whose models are gone
-/// or not yet tessellated does nothing.
-#[derive(Component, Clone, Debug, PartialEq)]
-pub struct PartJoint {
-    /// Model a.
-    pub a: Entity,
-    /// Model b.
-    pub b: Entity,
-    /// The ends, the stabilising constant and the multiplier.
-    pub joint: Joint,
-    /// x_b − x_a at the last step.
-    pub gap: DVec3,
-}
-
-impl PartJoint {
-    /// A joint between `a` at `end_a` and `b` at `end_b`, with the default constant
-    /// ([`PartJoint::STIFFNESS`]).
-    pub fn new(a: Entity, end_a: JointEnd, b: Entity, end_b: JointEnd) -> Self {
-        Self {
-            a,
-            b,
-            joint: Joint::new(end_a, end_b, Self::STIFFNESS),
-            gap: DVec3::ZERO,
-        }
-    }
-
-    /// The default stabilising constant κ ([`Joint::DEFAULT_STIFFNESS`]).
-    pub const STIFFNESS: f64 = Joint::DEFAULT_STIFFNESS;
-}
-
 /// Pause, single-step and reset, and what the simulation did.
 #[derive(Component, Reflect, Clone, Debug, Default, PartialEq)]
 #[reflect(Component, Default, Debug, PartialEq)]
@@ -392,147 +361,6 @@ pub struct SimControl {
     /// Sub-steps the last step took for stability (1 when within the bound).
     pub last_substeps: u32,
 }
-
-/// An image pulling on a model (eqs. 20–23): the potential (shared by every part fitted to the
-/// same image, through its `Arc`), β, the band and the beyond-the-paper options of
-/// [`ImageForces`](crate::model::forces::image::ImageForces). Pair it with
-/// [`ModelSettings::planar`] and `fix_epsilon`, as the image experiments do.
-#[derive(Component, Clone, Debug)]
-pub struct ImageData {
-    /// The forces, applied at the gather stage.
-    pub forces: crate::model::forces::image::ImageForces,
-}
-
-impl ImageData {
-    /// Image forces of `potential` with the default β, band and outline-only pull.
-    pub fn new(potential: std::sync::Arc<crate::model::forces::image::ImagePotential>) -> Self {
-        Self {
-            forces: crate::model::forces::image::ImageForces::new(potential),
-        }
-    }
-
-    /// The image settings of an image fit.
-    pub fn with_options(self, opts: &crate::model::image_fit::ImageFitOptions) -> Self {
-        Self {
-            forces: opts.forces(self.forces.potential),
-        }
-    }
-}
-
-/// Range data attached to a model: points in world space pulling on their points of influence
-/// (eq. 22). `forces.influence()` gives the current point → node (or element) attachment, readable
-/// by other systems.
-#[derive(Component, Clone, Debug)]
-pub struct RangeData {
-    /// The springs: points, strength β, influence mode and the current attachments.
-    pub forces: RangeForces,
-    /// Reattachments done so far.
-    pub reassignments: u64,
-}
-
-impl RangeData {
-    /// Range data with strength β = 4, the paper's nearest-node attachment and no coverage
-    /// springs (the paper's forces).
-    pub fn new(points: Vec<DVec3>) -> Self {
-        let mut forces = RangeForces::new(points, 4.0, InfluenceMode::NearestNode);
-        forces.coverage = 0.0;
-        Self {
-            forces,
-            reassignments: 0,
-        }
-    }
-
-    /// The same with model-to-data coverage springs of density `coverage` × β (see
-    /// [`crate::model::forces::range`]; [`DEFAULT_COVERAGE`](crate::model::forces::range::DEFAULT_COVERAGE) is what the fit loop places with).
-    pub fn with_coverage(mut self, coverage: f64) -> Self {
-        self.forces.coverage = coverage;
-        self
-    }
-
-    /// The same with points of influence migrating over the surface (Fig. 3).
-    pub fn migrating(mut self) -> Self {
-        self.forces.mode = InfluenceMode::Migrating { rate: 0.5 };
-        self
-    }
-
-    /// The same with strength β.
-    pub fn with_beta(mut self, beta: f64) -> Self {
-        self.forces.beta = beta;
-        self
-    }
-
-    /// The node each data point is attached to (the first node of its element when it lies
-    /// inside one); empty before the first reattachment.
-    pub fn attached_nodes(&self) -> impl Iterator<Item = u32> + '_ {
-        self.forces.influence().iter().map(|i| i.at.nodes[0])
-    }
-}
-
-/// A spring from a material point on the model's surface to a world-space anchor (a mouse spring).
-/// Several may act on one model.
-#[derive(Reflect, Clone, Copy, Debug, PartialEq)]
-pub struct Spring {
-    /// Material latitude u of the grabbed surface point.
-    pub u: f64,
-    /// Material longitude v of the grabbed surface point.
-    pub v: f64,
-    /// World-space anchor.
-    pub anchor: DVec3,
-    /// Spring constant (force per unit length).
-    pub stiffness: f64,
-}
-
-impl Spring {
-    /// Spring constant of a mouse spring per unit of the membrane stiffness w1 (see
-    /// [`Self::mouse_stiffness`]).
-    pub const GAIN: f64 = 2.0;
-    /// Longest a mouse spring may stretch, in units of the model's scale a.
-    pub const MAX_STRETCH: f64 = 1.5;
-
-    /// The constant of a mouse spring on a model: [`Self::GAIN`] × (w1 + w0 a²). A point force
-    /// f raises a spike of height about f / w1 in the membrane (and f / (w0 a²) where w0
-    /// dominates), so a spring scaled to the stiffness deforms every model visibly without
-    /// tearing it into a spike that the global DOFs then chase.
-    pub fn mouse_stiffness(settings: &ModelSettings, a: f64) -> f64 {
-        Self::GAIN * (settings.w1 + settings.w0 * a * a).max(1e-6)
-    }
-
-    /// A spring of constant `stiffness` on the node nearest `hit` (world space) of a model whose
-    /// world node positions are `node_x`, anchored at that node.
-    pub fn grab(tess: &Tessellation, node_x: &[DVec3], hit: DVec3, stiffness: f64) -> Option<Self> {
-        if node_x.len() != tess.node_count() || !hit.is_finite() || !(stiffness > 0.0) {
-            return None;
-        }
-        let node = (0..node_x.len()).min_by(|&i, &j| {
-            node_x[i]
-                .distance_squared(hit)
-                .total_cmp(&node_x[j].distance_squared(hit))
-        })?;
-        let [u, v] = tess.uv[node];
-        Some(Self {
-            u,
-            v,
-            anchor: node_x[node],
-            stiffness,
-        })
-    }
-
-    /// Moves the anchor to `target`, but no further than [`Self::MAX_STRETCH`] a from the grabbed
-    /// surface point: the force stays below GAIN · MAX_STRETCH · a³ however far the cursor goes,
-    /// so no drag can blow the simulation up.
-    pub fn pull_towards(&mut self, tess: &Tessellation, node_x: &[DVec3], target: DVec3, a: f64) {
-        if node_x.len() != tess.node_count() || !target.is_finite() {
-            return;
-        }
-        let at = tess.locate(self.u, self.v).interpolate(|k| node_x[k]);
-        self.anchor = at + (target - at).clamp_length_max(Self::MAX_STRETCH * a.max(0.0));
-    }
-}
-
-/// User springs acting on a model.
-#[derive(Component, Reflect, Clone, Debug, Default, PartialEq)]
-#[reflect(Component, Default, Debug, PartialEq)]
-pub struct SpringForces(pub Vec<Spring>);
 
 /// Drives a model through the stages of a fit to equilibrium, exactly as
 /// [`crate::model::fit::fit`] does (placing, global, joint; reattaching every `reassign_every`
