@@ -9,7 +9,7 @@
 //! * [`ground_truth_cloud`]: a random superquadric seen as EMS's paper tests its fitter — a
 //!   partial view, noise and outliers — with [`ParameterErrors`] to score a fit against it.
 
-use crate::model::fit::{FitOptions, Initialization};
+use crate::model::fit::{FitOptions, Initialization, Solver};
 use crate::model::init::{InitialPose, moments};
 use crate::model::superquadric::{SuperquadricParams, shape_at};
 use glam::{DQuat, DVec3};
@@ -492,7 +492,8 @@ impl ParameterErrors {
     }
 }
 
-/// A paper experiment: its data and the fit options the paper gives.
+/// A paper experiment: its data and the fit options the paper gives, run by the paper's
+/// dynamics ([`Solver::Dynamics`]).
 fn paper_experiment(
     points: Vec<DVec3>,
     k: usize,
@@ -502,6 +503,7 @@ fn paper_experiment(
 ) -> (Vec<DVec3>, FitOptions) {
     let mut o = FitOptions {
         k,
+        solver: Solver::Dynamics,
         ..Default::default()
     };
     o.dynamics.w0 = w0;

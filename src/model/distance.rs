@@ -161,6 +161,48 @@ pub fn radial(pose: &InitialPose, p: DVec3) -> Distance {
     }
 }
 
+/// The radial distance projected on the surface normal, (G(x) − 1)/|∇ₓG(x)| (Taubin's first-order
+/// distance to the level set G = 1): the radial distance times the cosine between the ray
+/// and the normal, so it does not overweigh points whose ray meets the surface obliquely (off
+/// the ends of long semi-axes) as the radial distance does, and it costs the same one gauge.
+pub fn normal_distance(pose: &InitialPose, p: DVec3) -> f64 {
+    normal(pose, p).distance
+}
+
+/// [`normal_distance`] and a gradient with the cosine held: the radial distance's gradient times
+/// the cosine (Gauss–Newton on the projected residual, the cosine refreshed at every
+/// evaluation).
+pub fn normal(pose: &InitialPose, p: DVec3) -> Distance {
+    let x = to_model(pose, p);
+    let axes = pose.shape.semi_axes();
+    let r = x.length();
+    let mut gradient = [0.0; NUM_UNKNOWNS];
+    if !(r > 0.0) {
+        return Distance {
+            distance: -axes.min_element(),
+            gradient,
+        };
+    }
+    let g = gauge(axes, pose.shape.e1, pose.shape.e2, x);
+    let slope = g.grad_x.length();
+    // cos = x̂·∇G/|∇G| = G/(r|∇G|) by Euler's theorem.
+    let cos = if slope > 0.0 {
+        g.value / (r * slope)
+    } else {
+        1.0
+    };
+    let k = cos * r / (g.value * g.value);
+    for (slot, d) in gradient[..5].iter_mut().zip(g.grad_shape) {
+        *slot = k * d;
+    }
+    let n = (x / r * (1.0 - 1.0 / g.value) + g.grad_x * (r / (g.value * g.value))) * cos;
+    rigid_gradient(pose, x, n, &mut gradient);
+    Distance {
+        distance: r * (1.0 - 1.0 / g.value) * cos,
+        gradient,
+    }
+}
+
 /// The closest surface point to a model-frame point ([`closest_point`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Foot {
@@ -192,6 +234,15 @@ struct ChartPoint {
     grad: [f64; 2],
 }
 
+/// The angle (rad) within which [`closest_point`]'s offset is normal to the surface at rest: the
+/// distance is then exact to 10⁻¹⁰ of itself.
+const EXACT_ANGLE: f64 = 1e-5;
+
+/// The angle within which a warm-started search ([`closest_point_from`]) is at rest: the distance
+/// is then exact to 5·10⁻⁷ of itself, below what a fit's steps resolve, and its gradient (the
+/// envelope theorem's, first order in the angle) to 10⁻³.
+const WARM_ANGLE: f64 = 1e-3;
+
 /// One chart about a ray: the tangent basis fixed for the whole search.
 struct Chart {
     axes: DVec3,
@@ -200,6 +251,8 @@ struct Chart {
     x: DVec3,
     d0: DVec3,
     t: [DVec3; 2],
+    /// The search is at rest when the offset is normal to within this angle (rad).
+    angle: f64,
 }
 
 impl Chart {
@@ -222,13 +275,14 @@ impl Chart {
         }
     }
 
-    /// True when the offset x − s is normal to the surface to within 10⁻⁵ rad (the distance is
-    /// then exact to 10⁻¹⁰ of itself), or the point lies on the surface to 10⁻¹² of its radius;
-    /// `grad` is the gradient of ½|s − x|² over the directions searched.
-    fn at_rest(p: &ChartPoint, grad: [f64; 2]) -> bool {
+    /// True when the offset x − s is normal to the surface to within `angle` rad (at
+    /// [`EXACT_ANGLE`] the distance is exact to 10⁻¹⁰ of itself), or the point lies on the
+    /// surface to 10⁻¹² of its radius; `grad` is the gradient of ½|s − x|² over the directions
+    /// searched.
+    fn within(p: &ChartPoint, grad: [f64; 2], angle: f64) -> bool {
         let g2 = grad[0] * grad[0] + grad[1] * grad[1];
         let j2 = p.j[0].length_squared() + p.j[1].length_squared();
-        g2 <= 1e-10 * p.f * j2 || p.f <= 1e-24 * p.s.length_squared()
+        g2 <= angle * angle * p.f * j2 || p.f <= 1e-24 * p.s.length_squared()
     }
 
     /// Minimises |s − x|² from c = 0, over both chart directions or, with `line`, over the first
@@ -253,7 +307,7 @@ impl Chart {
                 ],
                 cur.grad,
             );
-            if !cur.f.is_finite() || Self::at_rest(&cur, grad) {
+            if !cur.f.is_finite() || Self::within(&cur, grad, self.angle) {
                 break;
             }
             let hessian = if it < 2 && !line {
@@ -313,21 +367,32 @@ impl Chart {
 /// its side, and the nearest kept. The distance found is never above the radial one. At the
 /// centre the search starts at the end of the least semi-axis.
 pub fn closest_point(shape: &SuperquadricParams, x: DVec3) -> Foot {
+    closest_point_from(shape, x, None)
+}
+
+/// [`closest_point`] warm-started from `hint`, the ray direction of an earlier foot of the same
+/// point on a nearby shape (a fit's previous iterate): the search starts there, and is kept when
+/// it comes to rest no farther than the radial foot and the point is not deep inside (G(x) ≥ ½,
+/// where the distance has one minimum near the ray); otherwise the whole search of
+/// [`closest_point`] runs as well and the nearer foot is kept. A fit moves little between
+/// iterates, so a warm start comes to rest in one or two steps where a cold one takes several.
+pub fn closest_point_from(shape: &SuperquadricParams, x: DVec3, hint: Option<DVec3>) -> Foot {
     let axes = shape.semi_axes();
     let (e1, e2) = (shape.e1, shape.e2);
     let r = x.length();
-    let chart = |d0: DVec3, t: [DVec3; 2]| Chart {
+    let chart = |d0: DVec3, t: [DVec3; 2], angle: f64| Chart {
         axes,
         e1,
         e2,
         x,
         d0,
         t,
+        angle,
     };
-    let search = |d0: DVec3| {
-        let c = chart(d0, d0.any_orthonormal_pair().into());
+    let search = |d0: DVec3, angle: f64| {
+        let c = chart(d0, d0.any_orthonormal_pair().into(), angle);
         let p = c.descend(false);
-        if Chart::at_rest(&p, p.grad) {
+        if Chart::within(&p, p.grad, angle) {
             return p;
         }
         // Stalled on a crease: with an exponent near 2 the surface folds along a coordinate
@@ -343,28 +408,54 @@ pub fn closest_point(shape: &SuperquadricParams, x: DVec3) -> Foot {
             if along == DVec3::ZERO {
                 continue;
             }
-            let line = chart(on, [along, DVec3::AXES[i]]).descend(true);
+            let line = chart(on, [along, DVec3::AXES[i]], angle).descend(true);
             if line.f < best.f {
                 best = line;
             }
         }
         best
     };
+    let at_x = gauge(axes, e1, e2, x).value;
+    let deep = r == 0.0 || at_x < 0.5;
+    let warm = hint
+        .filter(|h| h.is_finite() && *h != DVec3::ZERO)
+        .and_then(|h| {
+            let p = search(h, WARM_ANGLE);
+            // The radial foot's squared distance bounds the closest one's.
+            let radial = r * (1.0 - 1.0 / at_x);
+            (p.f.is_finite() && p.f <= radial * radial * (1.0 + 1e-12)).then_some(p)
+        });
+    if let Some(p) = warm
+        && !deep
+        && Chart::within(&p, p.grad, WARM_ANGLE)
+    {
+        return foot_at(x, p);
+    }
     let radial_start = if r > 0.0 {
         x / r
     } else {
         DVec3::AXES[axes.min_position()]
     };
-    let mut best = search(radial_start);
-    if r == 0.0 || gauge(axes, e1, e2, x).value < 0.5 {
+    let mut best = search(radial_start, EXACT_ANGLE);
+    if let Some(p) = warm
+        && p.f < best.f
+    {
+        best = p;
+    }
+    if deep {
         for (i, axis) in DVec3::AXES.iter().enumerate() {
             let side = if x[i] < 0.0 { -1.0 } else { 1.0 };
-            let other = search(*axis * side);
+            let other = search(*axis * side, EXACT_ANGLE);
             if other.f < best.f {
                 best = other;
             }
         }
     }
+    foot_at(x, best)
+}
+
+/// The [`Foot`] of the model-frame point `x` at the chart point `best`.
+fn foot_at(x: DVec3, best: ChartPoint) -> Foot {
     let length = best.v.length();
     let d = best.v / length;
     let normal = best.g.grad_x.normalize_or_zero();
@@ -396,8 +487,14 @@ pub fn surface_distance(pose: &InitialPose, p: DVec3) -> f64 {
 /// the surface along its normal n (the envelope theorem): ∂D/∂θ = −n·∂s/∂θ with the ray
 /// direction held, and s = d/G(d) gives ∂s/∂θ = −d·(∂G/∂θ)/G².
 pub fn surface(pose: &InitialPose, p: DVec3) -> Distance {
+    surface_from(pose, p, None).0
+}
+
+/// [`surface`] with the search warm-started from `hint` ([`closest_point_from`]), and the foot's
+/// ray direction, the hint for the next call.
+pub fn surface_from(pose: &InitialPose, p: DVec3, hint: Option<DVec3>) -> (Distance, DVec3) {
     let x = to_model(pose, p);
-    let foot = closest_point(&pose.shape, x);
+    let foot = closest_point_from(&pose.shape, x, hint);
     let mut gradient = [0.0; NUM_UNKNOWNS];
     let g = foot.gauge;
     let k = foot.normal.dot(foot.direction) / (g.value * g.value);
@@ -405,10 +502,11 @@ pub fn surface(pose: &InitialPose, p: DVec3) -> Distance {
         *slot = k * d;
     }
     rigid_gradient(pose, x, foot.normal, &mut gradient);
-    Distance {
+    let distance = Distance {
         distance: foot.distance,
         gradient,
-    }
+    };
+    (distance, foot.direction)
 }
 
 /// Which distance a fit's residuals measure.
@@ -418,6 +516,8 @@ pub enum Metric {
     Radial,
     /// [`surface_distance`]: a few gauges a point, exact.
     Surface,
+    /// [`normal_distance`]: one gauge a point, the surface distance to first order.
+    Normal,
 }
 
 impl Metric {
@@ -426,6 +526,7 @@ impl Metric {
         match self {
             Self::Radial => radial_distance(pose, p),
             Self::Surface => surface_distance(pose, p),
+            Self::Normal => normal_distance(pose, p),
         }
     }
 
@@ -434,6 +535,30 @@ impl Metric {
         match self {
             Self::Radial => radial(pose, p),
             Self::Surface => surface(pose, p),
+            Self::Normal => normal(pose, p),
+        }
+    }
+
+    /// [`Metric::distance`] with the surface distance's search warm-started from `hint`
+    /// ([`closest_point_from`]), and the foot's ray direction (the radial distance needs no
+    /// search: its hint and direction are ignored and zero).
+    pub fn distance_from(self, pose: &InitialPose, p: DVec3, hint: Option<DVec3>) -> (f64, DVec3) {
+        match self {
+            Self::Radial => (radial_distance(pose, p), DVec3::ZERO),
+            Self::Normal => (normal_distance(pose, p), DVec3::ZERO),
+            Self::Surface => {
+                let foot = closest_point_from(&pose.shape, to_model(pose, p), hint);
+                (foot.distance, foot.direction)
+            }
+        }
+    }
+
+    /// [`Metric::with_gradient`] warm-started from `hint` (see [`Metric::distance_from`]).
+    pub fn with_gradient_from(self, pose: &InitialPose, p: DVec3, hint: Option<DVec3>) -> Distance {
+        match self {
+            Self::Radial => radial(pose, p),
+            Self::Normal => normal(pose, p),
+            Self::Surface => surface_from(pose, p, hint).0,
         }
     }
 }

@@ -309,7 +309,7 @@ mod tests {
         let c_body = DVec3::ZERO;
         let c_post = DVec3::new(1.45, 0.0, 0.6);
         let (points, n_body) = two_clouds((&body, c_body, 600), (&post, c_post, 500), 0.01);
-        let report = fit_parts(&points, 2, 6, &FitOptions::default()).expect("fit");
+        let report = fit_parts(&points, 2, 6, &FitOptions::default().for_data()).expect("fit");
         assert_eq!(report.owner.len(), points.len());
         assert!(report.owner.iter().all(|&o| o < 2));
         // Each true object ends up (almost) all in one part, a different one for each.

@@ -53,40 +53,32 @@ pub struct FitOptions {
     /// Prior fraction of outliers for the outlier-robust spring weights (`forces::range::Robust`);
     /// 0 gives the paper's equal weights.
     pub outlier_ratio: f64,
-    /// After the global stage, refine the superquadric with points of influence that migrate to
-    /// their closest surface points ([`Stage::Refine`]): the global parameters then fit the
-    /// surface through the points rather than the nearest nodes, which on clean data makes a
-    /// pure superquadric fit one to two orders of magnitude closer (beyond the paper). A pure
-    /// superquadric fit ([`FitOptions::global_only`]) then ends with the squareness extension
-    /// ([`extend_squareness`]), which may set an exponent the dynamics left at [`MIN_EPSILON`]
-    /// below it.
-    pub refine: bool,
     /// After choosing the hypothesis, also try its cross-section dual (turned 45° about the model
     /// axis with ε2 → 2 − ε2, see [`cross_section_dual`]) when ε2 is far from 1, and keep whichever
     /// fits closer: a square section and a diamond one are each other's local minimum (EMS's
     /// "similarity switching"; beyond the paper).
     pub switch_cross_section: bool,
-    /// After the refining stage, try the fit's similarity candidates ([`similarity_candidates`]:
-    /// the other two axes as the model's z with the exponents swapped, and the cross-section dual
-    /// about each axis whose two perpendicular semi-axes are alike), each through the global
-    /// stage and, unless it placed much worse than the fit ([`SIMILARITY_REFINE_MARGIN`]), the
-    /// refining stage, and keep the one closest to the points — weighted by the chosen fit's
-    /// inlier probabilities — if it is closer than the fit (EMS's similarity switching, Liu et
-    /// al. 2022; beyond the paper).
+    /// Try the fit's similarity candidates ([`similarity_candidates`]: the other two axes as the
+    /// model's z with the exponents swapped, and the cross-section dual about each axis whose
+    /// two perpendicular semi-axes are alike) and keep one that fits closer (EMS's similarity
+    /// switching, Liu et al. 2022; beyond the paper): the solved fit by EMS's rule, at most
+    /// [`LM_SWITCHES`] times; the dynamics run each through the global stage and keep the one
+    /// closest to the points, weighted by the chosen fit's inlier probabilities. The solved fit
+    /// with local DOFs always tries them.
     pub similarity_switch: bool,
     /// Initial pose and shape.
     pub init: Initialization,
-    /// How the fit comes to rest: the paper's dynamics, or the Levenberg–Marquardt solve of
-    /// [`crate::model::lm`] followed, with local DOFs, by the placing and global stages and the
-    /// implicit joint stage of [`implicit_joint_options`] ([`Solver`]).
+    /// How the fit comes to rest: solved for (the default), or by the paper's dynamics
+    /// ([`Solver`]). A fit that frees tapering or bending runs the dynamics either way.
     pub solver: Solver,
 }
 
 impl Default for FitOptions {
-    /// k = 31 (963 nodes), w0 = 1e-3, w1 = 0.1, γ_g = Δt = 0.05 (each global step a whole
+    /// The solved fit ([`Solver::Solved`]); k = 31 (963 nodes), w0 = 1e-3, w1 = 0.1, β = 4,
+    /// moments initialisation; for the dynamics γ_g = Δt = 0.05 (each global step a whole
     /// Gauss–Newton step on the springs, bounded by the step's trust region: it reaches rest in
-    /// 3–4 steps per reattachment where the interactive default, half a step, takes 15–20), β = 4,
-    /// nearest-node springs reattached every 200 steps, global first, moments initialisation.
+    /// 3–4 steps per reattachment where the interactive default, half a step, takes 15–20),
+    /// nearest-node springs reattached every 200 steps, global first.
     fn default() -> Self {
         Self {
             k: 31,
@@ -106,11 +98,10 @@ impl Default for FitOptions {
             global_only: false,
             point_to_plane: false,
             outlier_ratio: 0.0,
-            refine: false,
             switch_cross_section: false,
             similarity_switch: false,
             init: Initialization::Moments,
-            solver: Solver::Dynamics,
+            solver: Solver::Solved,
         }
     }
 }
@@ -118,13 +109,12 @@ impl Default for FitOptions {
 impl FitOptions {
     /// These options with everything that makes a fit robust to outliers and accurate on partial
     /// clouds (all beyond the paper): outlier-robust weights with a prior outlier fraction of 0.2
-    /// (EMS's), point-to-plane springs in the global stage, the refining stage, the cross-section
-    /// switch and the similarity switch. `dsq fit`'s `--robust`.
+    /// (EMS's), point-to-plane springs in the global stage, the cross-section switch and the
+    /// similarity switch. `dsq fit`'s `--robust`.
     pub fn robust(self) -> Self {
         Self {
             outlier_ratio: ROBUST_OUTLIER_RATIO,
             point_to_plane: true,
-            refine: true,
             switch_cross_section: true,
             similarity_switch: true,
             ..self
@@ -136,12 +126,10 @@ impl FitOptions {
     /// These options as the command-line fitter sets them for a user's cloud (all beyond the
     /// paper; docs/cli.md): outlier-robust weights with the prior outlier
     /// fraction [`ROBUST_OUTLIER_RATIO`] unless one is set, point-to-plane springs in the global
-    /// stage, and — for a pure superquadric ([`FitOptions::global_only`]) — the refining stage and
-    /// both switches, i.e. [`FitOptions::robust`]. With local DOFs the refining stage and the
-    /// switches are left as they are: they change the fitted surface by nothing measurable there
-    /// (20 generated clouds with 20 % outliers: the same median inlier residual, 35 % more steps
-    /// for the refining stage and the cross-section switch). With local DOFs the joint stage's
-    /// tessellation is chosen from the data ([`FitOptions::k_from_data`]). Pair it with [`FitOptions::with_stiffness_from_noise`] for fits with local DOFs.
+    /// stage, and — for a pure superquadric ([`FitOptions::global_only`]) — both switches, i.e.
+    /// [`FitOptions::robust`]. With local DOFs the membrane's tessellation is chosen from the
+    /// data ([`FitOptions::k_from_data`]). Pair it with
+    /// [`FitOptions::with_stiffness_from_noise`] for fits with local DOFs.
     pub fn for_data(self) -> Self {
         let base = if self.global_only {
             self.robust()

@@ -1,107 +1,8 @@
-//! The fit's plan: its [`Stage`]s and the clock that ends each ([`StageClock`]), the refining
-//! stage's tests, and the hypotheses a fit starts from (axis turns, duals, similarity candidates,
-//! extended squareness).
+//! The fit's plan: the dynamics' [`Stage`]s and the clock that ends each ([`StageClock`]), the
+//! hypotheses a fit starts from (axis turns, duals, similarity candidates), and the membrane's
+//! tessellation chosen from the data ([`joint_k`]).
 
 use super::*;
-
-/// Migration rate of the refining stage ([`Stage::Refine`]): each step moves a point of influence
-/// the whole Gauss–Newton way to the foot of its datum (at most one element).
-pub const REFINE_RATE: f64 = 1.0;
-
-/// Step budget of the refining stage. A refinement that is not at rest by then, or that leaves
-/// the points farther from the surface than the global stage did, is undone: on noisy clouds with
-/// outliers, points near a cylinder's rim can let its length run away (each cap point's closest
-/// surface point slides onto the side wall), a minimum of the one-sided distance that is no fit.
-pub const REFINE_MAX_STEPS: u32 = 3000;
-
-/// The refining stage is checked every this many steps ([`REFINE_GIVE_UP`], [`refine_stalled`]).
-pub const REFINE_CHECK_EVERY: u32 = 250;
-
-/// A refinement whose mean point-to-surface distance, checked every [`REFINE_CHECK_EVERY`] steps,
-/// exceeds this multiple of the least distance it has had (the global stage's at first) is given
-/// up and undone at once instead of at the end of its [`REFINE_MAX_STEPS`]. On scans of objects
-/// that are no superquadric, the outlier weights let it drop whole limbs (the bunny's ears) and
-/// the one-sided distance it minimises keeps falling while the model runs off; on a cylinder with
-/// outliers (EMS's `noisy_pointCloud_example_2`), projected onto the mesh's chords, it first came
-/// closer, then its length ran away.
-pub const REFINE_GIVE_UP: f64 = 1.01;
-
-/// A refinement is also given up, after any step, when the superquadric's longest semi-axis has
-/// grown past this multiple of its length at the start of the stage ([`refine_overgrown`]). The
-/// refinement polishes a fit that the global stage has placed and sized; a model that grows by
-/// half again is the other way a cylinder's length runs away with its rim points, the mean
-/// distance still falling as it goes (on EMS's `noisy_pointCloud_example_3`, two similarity
-/// candidates grew 3× in 3000 steps).
-pub const REFINE_MAX_GROWTH: f64 = 1.5;
-
-/// The refining stage's check every [`REFINE_CHECK_EVERY`] steps, shared by [`fit`] and the
-/// plugin's fit: given the mean `distance` of the points now and the `least` seen before, returns
-/// the new least, or `None` to give the refinement up ([`REFINE_GIVE_UP`]).
-pub fn refine_check(distance: f64, least: f64) -> Option<f64> {
-    (distance <= REFINE_GIVE_UP * least).then(|| least.min(distance))
-}
-
-/// Whether a refinement has run off in length: its longest semi-axis `longest` is past
-/// [`REFINE_MAX_GROWTH`] times `start`, its length at the start of the stage. One number, so
-/// [`fit`] and the plugin's fit ask after every step of the stage that did not end it: a model
-/// that runs off in length goes on running off, and was given up only at the next check of
-/// [`REFINE_CHECK_EVERY`] (on EMS's `partial_pointCloud_example_1`
-/// had one similarity candidate 2.2 times as long 65 steps into its refinement and 62 times at
-/// the check 215 steps in).
-pub fn refine_overgrown(longest: f64, start: f64) -> bool {
-    longest > REFINE_MAX_GROWTH * start
-}
-
-/// A refinement whose inlier-weighted mean point-to-surface distance ([`refine_distances`], with
-/// the robust weights of the moment), checked every [`REFINE_CHECK_EVERY`] steps, fell by less
-/// than this fraction since the previous check is given up ([`refine_stalled`]): it is circling,
-/// not converging. On EMS's `partial_pointCloud_example_3` one similarity candidate's refinement
-/// went round a cycle of states (the largest node motion steady at 2.6e-3 of the RMS radius a
-/// step) to its [`REFINE_MAX_STEPS`] and was undone; it is now undone 920 steps sooner. The
-/// weights matter: with 20 % outliers the plain mean distance wanders by more than this while a
-/// fit still converges (a rule on it lost one of the 20 ground-truth clouds).
-pub const REFINE_MIN_PROGRESS: f64 = 1e-3;
-
-/// A similarity candidate ([`FitOptions::similarity_switch`]) goes on to the refining stage only
-/// when its global stage ended no farther from the points than this multiple of the chosen fit's
-/// global stage (both by the chosen fit's inlier-weighted mean distance,
-/// [`weighted_mean_distance`]): the two stages ran on the same forces, so the comparison is
-/// like for like, and a candidate that placed much worse has not been seen to refine past the
-/// chosen fit. On the eight shipped clouds and the 20 ground-truth clouds (`cargo bench --bench
-/// ground_truth`) the candidates that won did so from ratios of 0.39 to 1.89, and
-/// those that lost reached 4.5; at 2.5 the fits and the ground-truth table are what refining
-/// every candidate gives, and EMS's `partial_pointCloud_example_1`, `_2` and `_3` skip
-/// refinements that took 25 %, 31 % and 40 % of their steps.
-pub const SIMILARITY_REFINE_MARGIN: f64 = 2.5;
-
-/// Whether a similarity candidate whose global stage ended `candidate` from the points is
-/// refined, when the chosen fit's global stage ended `chosen` from them
-/// ([`SIMILARITY_REFINE_MARGIN`]). Shared by [`fit`] and the plugin's fit.
-pub fn refine_candidate(candidate: f64, chosen: f64) -> bool {
-    candidate <= SIMILARITY_REFINE_MARGIN * chosen
-}
-
-/// Whether a refinement has stalled: its inlier-weighted distance `weighted` at a check is more
-/// than 1 − [`REFINE_MIN_PROGRESS`] times the one at the `previous` check of the stage (none at
-/// the first). Shared by [`fit`] and the plugin's fit.
-pub fn refine_stalled(weighted: f64, previous: Option<f64>) -> bool {
-    previous.is_some_and(|p| weighted > (1.0 - REFINE_MIN_PROGRESS) * p)
-}
-
-/// The refining stage's two measures at a check, from one pass over the point distances: the
-/// mean distance of `range`'s points to the surface through `node_x` ([`refine_check`]) and the
-/// same weighted by each point's [`RangeForces::relative_weight`] ([`refine_stalled`]).
-pub fn refine_distances(tess: &Tessellation, node_x: &[DVec3], range: &RangeForces) -> (f64, f64) {
-    let d = point_distances(tess, node_x, range.points());
-    let mean = d.iter().sum::<f64>() / d.len().max(1) as f64;
-    let (mut total, mut weighted) = (0.0, 0.0);
-    for (i, d) in d.iter().enumerate() {
-        let w = range.relative_weight(i);
-        total += w;
-        weighted += w * d;
-    }
-    (mean, weighted / total.max(f64::MIN_POSITIVE))
-}
 
 /// Which degrees of freedom the loop is moving, and with which forces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -110,37 +11,19 @@ pub enum Stage {
     Cover,
     /// Global DOFs only (local held), the paper's forces.
     Global,
-    /// Global DOFs only, after the hypothesis is chosen, with each point's point of influence
-    /// migrating to its closest point on the surface (the paper's Fig. 3) and point-to-plane
-    /// springs: the superquadric fitted to the points themselves instead of to the nodes they
-    /// chose (beyond the paper's experiments; [`FitOptions::refine`]). [`fit`] and
-    /// `plugin::headless::fit_headless` undo it when it does not pay; the plugin's `FitDriver` alone
-    /// runs it to rest or to its budget.
-    Refine,
     /// Global and local DOFs together.
     Joint,
 }
 
-/// The bookkeeping of one stage of a fit: how the forces and free DOFs are set, when points are
-/// reattached and when the model is at rest. [`fit`] and the plugin's fit driver share it, so a fit
-/// takes the same steps either way.
+/// The bookkeeping of one stage of the dynamics: how the forces and free DOFs are set, when
+/// points are reattached and when the model is at rest.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct StageClock {
     /// The stage being run.
     pub stage: Stage,
     /// Steps since the last reattachment.
     pub since_reassign: u32,
-    /// Signatures ([`RangeForces::signature`]) of the springs that the last
-    /// [`REST_CYCLE_MEMORY`] unsettled reattachments at rest gave, newest at
-    /// `rests % REST_CYCLE_MEMORY`.
-    pub rest_signatures: [u64; REST_CYCLE_MEMORY],
-    /// How many unsettled reattachments at rest this stage has had.
-    pub rests: u32,
 }
-
-/// How many of its last rests a stage remembers to tell a cycle of rests
-/// ([`StageClock::after_step`]).
-pub const REST_CYCLE_MEMORY: usize = 4;
 
 impl StageClock {
     /// A clock at the start of `stage`.
@@ -148,8 +31,6 @@ impl StageClock {
         Self {
             stage,
             since_reassign: 0,
-            rest_signatures: [0; REST_CYCLE_MEMORY],
-            rests: 0,
         }
     }
 
@@ -158,20 +39,10 @@ impl StageClock {
         opts.dynamics.free.local && self.stage == Stage::Joint
     }
 
-    /// Whether the range springs are point-to-plane in this stage (the global stages, when
+    /// Whether the range springs are point-to-plane in this stage (the global stage, when
     /// `point_to_plane` is set).
     pub fn plane(&self, opts: &FitOptions) -> bool {
-        (opts.point_to_plane && self.stage == Stage::Global) || self.stage == Stage::Refine
-    }
-
-    /// How points of influence are chosen in this stage: migrating in the refining stage, the
-    /// options' mode otherwise.
-    pub fn influence(&self, opts: &FitOptions) -> InfluenceMode {
-        if self.stage == Stage::Refine {
-            InfluenceMode::Migrating { rate: REFINE_RATE }
-        } else {
-            opts.influence
-        }
+        opts.point_to_plane && self.stage == Stage::Global
     }
 
     /// Coverage-spring density in this stage: the placing stage has them, and with
@@ -186,43 +57,26 @@ impl StageClock {
     }
 
     /// After a step whose largest node motion was `motion`: reattaches through `reassign` (which
-    /// returns how many springs changed and the springs' [`RangeForces::signature`]) when
-    /// `reassign_every` steps have passed or the model is at rest, and returns true when the stage
-    /// is over: at rest right after a reattachment that changed at most `settle_fraction` of the
-    /// `points`, or at rest right after one that gave springs this stage has already had at one of
-    /// its last [`REST_CYCLE_MEMORY`] rests. That is a cycle of rests: with nearest-node springs a
-    /// point midway between two nodes can flip from one to the other at each rest for ever (on
-    /// EMS's `partial_pointCloud_example_3` with `--outliers 0.05`, one point of 216 — more than
-    /// the 0.2 % it may — every 3 steps, until the fit's 20 000-step cap). A reattachment that
-    /// changed every spring (the robust weights still sharpening) starts no cycle.
+    /// returns how many springs changed) when `reassign_every` steps have passed or the model is
+    /// at rest, and returns true when the stage is over: at rest right after a reattachment that
+    /// changed at most `settle_fraction` of the `points`, and never fewer than one. (A point
+    /// midway between two nodes can flip from one to the other at every rest for ever; below 500
+    /// points the default 0.2 % rounds to none, and such a stage ran to its step cap.)
     pub fn after_step(
         &mut self,
         motion: f64,
         opts: &FitOptions,
         points: usize,
-        reassign: impl FnOnce() -> (usize, u64),
+        reassign: impl FnOnce() -> usize,
     ) -> bool {
         self.since_reassign += 1;
         let at_rest = motion < opts.tolerance;
         if self.since_reassign < opts.reassign_every && !at_rest {
             return false;
         }
-        let (changed, signature) = reassign();
+        let changed = reassign();
         self.since_reassign = 0;
-        if !at_rest {
-            return false;
-        }
-        if changed as f64 <= opts.settle_fraction * points as f64 {
-            return true;
-        }
-        if changed >= points {
-            return false;
-        }
-        let seen = self.rest_signatures[..(self.rests as usize).min(REST_CYCLE_MEMORY)]
-            .contains(&signature);
-        self.rest_signatures[self.rests as usize % REST_CYCLE_MEMORY] = signature;
-        self.rests += 1;
-        seen
+        at_rest && changed as f64 <= (opts.settle_fraction * points as f64).max(1.0)
     }
 }
 
@@ -231,71 +85,6 @@ impl StageClock {
 /// whole, so that the candidates can run side by side and the fit stays within its cap.
 pub fn similarity_share(max_steps: u32, spent: u32, candidates: usize) -> u32 {
     max_steps.saturating_sub(spent) / candidates.max(1) as u32
-}
-
-/// The exponents [`extend_squareness`] tries below [`MIN_EPSILON`], largest first.
-pub const EXTENDED_EPSILONS: [f64; 4] = [0.05, 0.03, 0.02, LEAST_EPSILON];
-
-/// The squareness extension of a pure superquadric fit (beyond the paper). The dynamics hold ε1
-/// and ε2 at [`MIN_EPSILON`] or above, because below it eq. (4) crowds a flat face into a sliver
-/// of (u, v) at the pole that the points of influence cannot migrate onto; a fit that ends with an
-/// exponent at that bound is asking for a squarer shape. Each such exponent (ε1, then ε2 with ε1's
-/// outcome) is tried at each of [`EXTENDED_EPSILONS`], every other parameter held, and set to the
-/// trial whose surface lies closest to `points` weighted by `weights` (the similarity switch's
-/// score, [`weighted_mean_distance`], measured over every core) if it is closer than the fit's.
-/// The shape when an exponent moved, `None` otherwise.
-///
-/// EMS's noisy cylinder (`noisy_pointCloud_example_2`), whose robust fit came to rest at ε1 =
-/// 0.1, is the case: the extension takes ε1 to 0.01 and the mean distance of the points to the
-/// surface from 0.01485 to 0.01468 of the diagonal, EMS's own fit (ε1 = 0.01) lying 0.01473
-/// from them (docs/results.md, "Side by side with EMS").
-pub fn extend_squareness(
-    tess: &Tessellation,
-    state: &ModelState,
-    points: &[DVec3],
-    weights: &[f64],
-) -> Option<SuperquadricParams> {
-    let mut x = Vec::new();
-    let mut distance = |shape: &SuperquadricParams| {
-        node_positions(
-            tess,
-            state.translation,
-            state.rotation,
-            shape,
-            &state.deformation,
-            &state.displacement,
-            &mut x,
-        );
-        // The extension runs alone at the end of a fit: its distances use every core.
-        weighted_mean(&point_distances_parallel(tess, &x, points), weights)
-    };
-    let mut best = state.shape;
-    let mut least = None;
-    for k in 0..2 {
-        let with = |q: SuperquadricParams, e: f64| {
-            if k == 0 {
-                SuperquadricParams { e1: e, ..q }
-            } else {
-                SuperquadricParams { e2: e, ..q }
-            }
-        };
-        if [best.e1, best.e2][k] != MIN_EPSILON {
-            continue;
-        }
-        let mut here = *least.get_or_insert_with(|| distance(&best));
-        let mut moved = None;
-        for e in EXTENDED_EPSILONS {
-            let trial = with(best, e);
-            let d = distance(&trial);
-            if d < here {
-                (here, moved) = (d, Some(trial));
-            }
-        }
-        if let Some(shape) = moved {
-            (best, least) = (shape, Some(here));
-        }
-    }
-    (best != state.shape).then_some(best)
 }
 
 /// The stages a fit runs before choosing among initial hypotheses: placing (when `coverage` > 0)

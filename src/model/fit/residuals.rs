@@ -78,9 +78,8 @@ pub const PARALLEL_DISTANCES: usize = 256;
 
 /// [`point_distances`] over rayon's threads, in runs of [`PARALLEL_DISTANCES`] points: each point
 /// is measured as it is there, so the distances are the same to the bit. For the parts of a fit
-/// that run alone, the squareness extension ([`extend_squareness`]) and the residuals
-/// ([`fit_residuals`]); the hypotheses and candidates, which already run side by side, use
-/// [`point_distances`].
+/// that run alone, such as the residuals ([`fit_residuals`]); the hypotheses and candidates,
+/// which already run side by side, use [`point_distances`].
 pub fn point_distances_parallel(
     tess: &Tessellation,
     node_x: &[DVec3],

@@ -423,29 +423,6 @@ impl RangeForces {
         changed
     }
 
-    /// A fingerprint of the springs: every point's point of influence (u_r, v_r) and element,
-    /// bit for bit (the shape functions follow from those). Two reattachments that give the same
-    /// springs give the same signature; the fit's stage clock uses it to tell a cycle of rests
-    /// from progress ([`crate::model::fit::StageClock::after_step`]). An FNV-1a-style fold of
-    /// three words a point: a few nanoseconds each, well below a reattachment's cost.
-    pub fn signature(&self) -> u64 {
-        const PRIME: u64 = 0x0000_0100_0000_01b3;
-        self.influence
-            .iter()
-            .flat_map(|inf| {
-                let nodes = inf.at.nodes;
-                [
-                    inf.u.to_bits(),
-                    inf.v.to_bits(),
-                    (u64::from(nodes[0]) << 32 | u64::from(nodes[1]))
-                        ^ (u64::from(nodes[2]) << 32 | u64::from(nodes[3])).rotate_left(17),
-                ]
-            })
-            .fold(0xcbf2_9ce4_8422_2325, |h, word| {
-                (h ^ word).wrapping_mul(PRIME)
-            })
-    }
-
     /// The E-step of the robust weights: each point's inlier probability from its distance to its
     /// point of influence, then σ² from the weighted distances, [`EM_ITERATIONS`] times.
     fn update_robust(&mut self, node_x: &[DVec3]) {

@@ -1,0 +1,215 @@
+//! Tests of the Levenberg–Marquardt core and search.
+
+use super::*;
+use crate::model::superquadric::MIN_EPSILON;
+use crate::synthetic::superquadric_cloud;
+
+fn pose() -> InitialPose {
+    crate::model::distance::tests::pose(0.6, 1.4)
+}
+
+fn options(outlier_ratio: f64) -> LmOptions {
+    LmOptions {
+        mixture: Mixture {
+            outlier_ratio,
+            outlier_density: 1.0 / 27.0,
+            sigma2_floor: 1e-10,
+        },
+        max_rounds: 30,
+        steps_per_round: 10,
+        tolerance: 1e-6,
+        metric: Metric::Radial,
+        max_semi_axis: f64::INFINITY,
+        min_epsilon: MIN_EPSILON,
+        hold_exponents: false,
+    }
+}
+
+#[test]
+fn a_spread_sample_keeps_small_clouds_whole_and_spreads_through_large_ones() {
+    let points: Vec<DVec3> = (0..1000).map(|i| DVec3::splat(i as f64)).collect();
+    assert_eq!(spread_sample(&points, 500), points);
+    let few = spread_sample(&points, 100);
+    assert_eq!(few.len(), 100);
+    assert_eq!(few[0], points[0]);
+    assert_eq!(few[99], points[990]);
+    assert!(few.windows(2).all(|w| w[1].x - w[0].x == 10.0));
+}
+
+#[test]
+fn the_semi_axes_stop_at_their_bound_and_the_cost_still_falls() {
+    let truth = pose();
+    let points = superquadric_cloud(
+        &truth.shape,
+        truth.translation,
+        truth.rotation,
+        400,
+        0.0,
+        11,
+    );
+    let longest = truth.shape.semi_axes().max_element();
+    let bound = 0.8 * longest;
+    let mut start = truth;
+    start.shape.a *= 0.7;
+    let opts = LmOptions {
+        max_semi_axis: bound,
+        ..options(0.0)
+    };
+    let free = fit_em(&points, &start, 1e-2, &options(0.0));
+    let held = fit_em(&points, &start, 1e-2, &opts);
+    let start_cost = weighted_cost(Metric::Radial, &start, &points, &[]);
+    // Unbounded, the longest semi-axis comes back to the truth; bounded, it stops at the
+    // bound while the others go on fitting.
+    assert!((free.pose.shape.semi_axes().max_element() - longest).abs() < 1e-6);
+    let axes = held.pose.shape.semi_axes();
+    assert!(axes.max_element() <= bound * (1.0 + 1e-12), "{axes}");
+    assert!((axes.max_element() - bound).abs() < 1e-9, "{axes}");
+    assert!(held.cost.is_finite() && held.cost < start_cost);
+    assert!(held.cost > free.cost);
+}
+
+#[test]
+fn steps_lower_the_cost_and_stay_finite_until_the_fit_recovers_the_shape() {
+    let truth = pose();
+    let points = superquadric_cloud(&truth.shape, truth.translation, truth.rotation, 400, 0.0, 7);
+    let mut start = truth;
+    start.translation += DVec3::new(0.1, 0.05, -0.08);
+    start.rotation = (start.rotation * DQuat::from_rotation_z(0.15)).normalize();
+    start.shape.a *= 1.15;
+    start.shape.e1 = 1.0;
+    start.shape.e2 = 1.0;
+    let mut cost = weighted_cost(Metric::Radial, &start, &points, &[]);
+    let mut pose = start;
+    let mut lambda = INITIAL_DAMPING;
+    for _ in 0..60 {
+        let Some((next, c)) = lm_step(
+            &pose,
+            cost,
+            (&points, &[]),
+            &mut lambda,
+            &options(0.0),
+            (&mut Vec::new(), &mut Vec::new()),
+            None,
+        ) else {
+            break;
+        };
+        assert!(c < cost && c.is_finite(), "{c} after {cost}");
+        assert!(next.translation.is_finite() && next.shape.is_finite());
+        (pose, cost) = (next, c);
+    }
+    assert!(cost < 1e-12, "cost {cost}");
+    let axes = pose.shape.semi_axes();
+    assert!(
+        (axes - truth.shape.semi_axes()).abs().max_element() < 1e-5,
+        "{axes}"
+    );
+    assert!((pose.shape.e1 - 0.6).abs() < 1e-5 && (pose.shape.e2 - 1.4).abs() < 1e-5);
+}
+
+#[test]
+fn outliers_get_low_weights_and_do_not_move_the_fit() {
+    let truth = pose();
+    let mut points =
+        superquadric_cloud(&truth.shape, truth.translation, truth.rotation, 300, 0.0, 3);
+    let n = points.len();
+    // A fifth more points scattered through the box.
+    for i in 0..n / 4 {
+        let t = i as f64;
+        points.push(DVec3::new(
+            (t * 0.37).sin() * 1.5,
+            (t * 0.71).cos() * 1.5,
+            (t * 1.13).sin() * 1.5,
+        ));
+    }
+    let mut start = truth;
+    start.shape.a *= 1.1;
+    let fit = fit_em(&points, &start, 0.05, &options(0.2));
+    assert!(fit.cost.is_finite());
+    let inliers: f64 = fit.weights[..n].iter().sum::<f64>() / n as f64;
+    assert!(
+        inliers > 0.95,
+        "mean inlier weight of the surface points {inliers}"
+    );
+    let axes = fit.pose.shape.semi_axes();
+    assert!(
+        (axes - truth.shape.semi_axes()).abs().max_element() < 1e-3,
+        "{axes}"
+    );
+}
+
+#[test]
+fn the_solve_recovers_the_truth_from_a_far_start_and_a_near_one() {
+    let truth = pose();
+    let points = superquadric_cloud(&truth.shape, truth.translation, truth.rotation, 300, 0.0, 5);
+    let mut far = truth;
+    far.translation += DVec3::new(2.0, 0.0, 0.0);
+    far.shape.a *= 0.3;
+    for starts in [vec![far, truth], vec![far]] {
+        let s = solve(&points, &starts, 0.05, &options(0.0), |_| Vec::new(), 2).unwrap();
+        assert!(starts.contains(&s.start));
+        assert!(score(&s.fit.pose, &points) < 1e-6, "{:?}", s.fit.pose);
+        assert!(s.fit.pose.shape.is_finite() && s.fit.cost.is_finite());
+    }
+    // An empty set of starts has no solution, and no panic.
+    assert!(solve(&points, &[], 0.05, &options(0.0), |_| Vec::new(), 2).is_none());
+}
+
+/// Mean |surface distance| of `points` to `pose`.
+fn mean_surface(pose: &InitialPose, points: &[DVec3]) -> f64 {
+    points
+        .iter()
+        .map(|p| super::super::distance::surface_distance(pose, *p).abs())
+        .sum::<f64>()
+        / points.len() as f64
+}
+
+#[test]
+fn the_surface_polish_brings_a_noisy_elongated_fit_closer() {
+    // A long, squarish superquadric under noise: the radial distance's optimum is off the
+    // surface distance's, and the polish moves there.
+    let mut truth = pose();
+    truth.shape.a3 = 0.25;
+    truth.shape.e1 = 0.3;
+    let points = superquadric_cloud(
+        &truth.shape,
+        truth.translation,
+        truth.rotation,
+        1500,
+        0.04,
+        9,
+    );
+    let radial_only = fit_em(&points, &truth, 0.01, &options(0.0));
+    let polished = solve(&points, &[truth], 0.01, &options(0.0), |_| Vec::new(), 0).unwrap();
+    let (before, after) = (
+        mean_surface(&radial_only.pose, &points),
+        mean_surface(&polished.fit.pose, &points),
+    );
+    assert!(after < 0.99 * before, "polished {after} vs radial {before}");
+    assert!(polished.fit.pose.shape.is_finite() && polished.fit.cost.is_finite());
+}
+
+#[test]
+fn an_exponent_on_its_bound_stays_there_while_the_rest_converge() {
+    // A box: ε below the least allowed exponent, so the fit rests with both on the bound.
+    let mut truth = pose();
+    truth.shape.e1 = 0.05;
+    truth.shape.e2 = 0.05;
+    let points = superquadric_cloud(&truth.shape, truth.translation, truth.rotation, 600, 0.0, 4);
+    let mut start = truth;
+    start.shape.e1 = 0.4;
+    start.shape.e2 = 0.4;
+    start.shape.a *= 1.05;
+    let fit = fit_em(&points, &start, 0.01, &options(0.0));
+    assert_eq!(
+        (fit.pose.shape.e1, fit.pose.shape.e2),
+        (MIN_EPSILON, MIN_EPSILON)
+    );
+    assert!(fit.converged && fit.cost.is_finite(), "{fit:?}");
+    // The bound's rounder corners make the fit a little larger than the box.
+    let axes = fit.pose.shape.semi_axes();
+    assert!(
+        ((axes - truth.shape.semi_axes()).abs() / truth.shape.semi_axes()).max_element() < 0.04,
+        "{axes} vs {}",
+        truth.shape.semi_axes()
+    );
+}
