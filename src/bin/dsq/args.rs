@@ -25,14 +25,15 @@ pub enum Paper {
     Doll,
 }
 
-/// How a pure superquadric's global DOFs come to rest (`--solver`).
+/// How a point fit comes to rest (`--solver`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum SolverArg {
+    /// Solved for (the default): the superquadric by Levenberg–Marquardt, the membrane by
+    /// linear solves (no --taper or --bend yet; those run the dynamics).
+    #[value(alias = "lm")]
+    Solved,
     /// The paper's explicit dynamics under range springs.
     Dynamics,
-    /// Levenberg–Marquardt on the radial, then the surface distance; with local DOFs, then
-    /// implicit steps of the membrane (no --taper or --bend).
-    Lm,
 }
 
 /// The membrane's w1: a number, or `auto` (chosen from the cloud's noise).
@@ -49,9 +50,9 @@ pub enum W1 {
 #[command(
     allow_negative_numbers = true,
     after_help = "\
-A POINTS file is fitted by default with --outliers 0.2 --plane --w1 auto, and with --robust when \
---global-only (without --app). --paper-forces starts from the paper's springs and stiffness \
-instead. Progress goes to stderr; stdout gets one JSON line per part and a summary line. Bad input \
+A POINTS file is fitted by default with --solver solved --outliers 0.2 --plane --w1 auto, and \
+with --robust when --global-only. --paper-forces starts from the paper's springs and stiffness \
+instead; --solver dynamics runs the paper's explicit dynamics. Progress goes to stderr; stdout gets one JSON line per part and a summary line. Bad input \
 exits with code 2 and a one-line message."
 )]
 pub struct FitArgs {
@@ -105,9 +106,9 @@ pub struct FitArgs {
     /// w0 = 1e-3, w1 = 0.1) instead of the data-driven defaults.
     #[arg(long, help_heading = "Point clouds")]
     pub paper_forces: bool,
-    /// How the fit comes to rest: `dynamics` (the default: the paper's explicit steps) or `lm`
-    /// (no --taper or --bend): the superquadric solved for by Levenberg–Marquardt in tens of
-    /// iterations and, with local DOFs, the membrane brought to rest by implicit steps.
+    /// How the fit comes to rest: `solved` (the default; `lm` is the same): the superquadric
+    /// solved for by Levenberg–Marquardt and, with local DOFs, the membrane by linear solves; or
+    /// `dynamics`: the paper's explicit steps. --taper and --bend run the dynamics.
     #[arg(long, value_enum, help_heading = "Point clouds")]
     pub solver: Option<SolverArg>,
     /// Point-to-plane springs in the global stage.
@@ -116,17 +117,14 @@ pub struct FitArgs {
     /// Prior fraction of outliers for the robust spring weights, in [0, 1).
     #[arg(long, value_name = "F", value_parser = fraction, help_heading = "Point clouds")]
     pub outliers: Option<f64>,
-    /// Refine the superquadric with points of influence that migrate over the surface.
-    #[arg(long, help_heading = "Point clouds")]
-    pub refine: bool,
     /// Also try the cross-section dual of the chosen hypothesis.
     #[arg(long, help_heading = "Point clouds")]
     pub switch: bool,
     /// Also try the fit's similarity candidates.
     #[arg(long, help_heading = "Point clouds")]
     pub similar: bool,
-    /// --outliers 0.2 --plane --refine --switch --similar: the most accurate pure superquadric
-    /// on partial or outlier-ridden clouds.
+    /// --outliers 0.2 --plane --switch --similar: the most accurate pure superquadric on
+    /// partial or outlier-ridden clouds.
     #[arg(long, help_heading = "Point clouds")]
     pub robust: bool,
     /// Points of influence migrate over the surface (the paper's Fig. 3).
@@ -396,7 +394,6 @@ impl FitArgs {
         o.dynamics.free.taper |= self.taper;
         o.dynamics.free.bend |= self.bend;
         o.point_to_plane |= self.plane;
-        o.refine |= self.refine;
         o.switch_cross_section |= self.switch;
         o.similarity_switch |= self.similar;
         if let Some(f) = self.outliers {
@@ -439,11 +436,15 @@ impl FitArgs {
             Some(_) if !is_file => {
                 return Err("--solver acts on POINTS fits".into());
             }
-            Some(SolverArg::Lm) if o.dynamics.free.taper || o.dynamics.free.bend => {
-                return Err("--solver lm takes no --taper or --bend".into());
+            Some(SolverArg::Solved) if o.dynamics.free.taper || o.dynamics.free.bend => {
+                return Err(
+                    "--solver solved takes no --taper or --bend yet; drop --solver to fit them by the dynamics"
+                        .into(),
+                );
             }
-            Some(SolverArg::Lm) => o.solver = Solver::LevenbergMarquardt,
-            Some(SolverArg::Dynamics) | None => {}
+            Some(SolverArg::Solved) => o.solver = Solver::Solved,
+            Some(SolverArg::Dynamics) => o.solver = Solver::Dynamics,
+            None => {}
         }
         if self.paper_forces && !is_file {
             return Err(

@@ -8,7 +8,8 @@ use bevy_deformable_sq::io::{
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{
-    FitError, FitOptions, FitReport, Residuals, Stage, bounding_diagonal, fit, point_distances,
+    FitError, FitOptions, FitReport, Residuals, Solver, Stage, bounding_diagonal, fit,
+    point_distances,
 };
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::image_fit::{
@@ -80,7 +81,6 @@ pub fn run(args: Args, paper_points: Option<Vec<DVec3>>) -> Result<(), String> {
             let stage = match p.stage {
                 Stage::Cover => "placing",
                 Stage::Global => "global",
-                Stage::Refine => "refining",
                 Stage::Joint => "global+local",
             };
             let rate = p.step as f64 / start.elapsed().as_secs_f64().max(1e-9);
@@ -275,9 +275,10 @@ fn range_summary(
         "a": shape.a, "a1": shape.a1, "a2": shape.a2, "a3": shape.a3,
         "e1": shape.e1, "e2": shape.e2,
         "taper": report.state.deformation.taper, "bend": report.state.deformation.bend,
-        "refine": report.refinement.map(|r| serde_json::json!({
-            "steps": r.steps, "kept": r.kept, "gave_up": r.gave_up,
-        })),
+        "solver": match report.solver {
+            Solver::Solved => "solved",
+            Solver::Dynamics => "dynamics",
+        },
     })
 }
 
