@@ -148,7 +148,7 @@ fn keys(
     mut inspector: ResMut<InspectorState>,
     mut springs: ResMut<MouseSpringSettings>,
     mut orbit: ResMut<orbit::Orbit>,
-    mut controls: Query<(&mut SimControl, Has<RangeData>)>,
+    mut controls: Query<(&mut SimControl, &ModelSettings, Has<RangeData>)>,
     mut commands: Commands,
 ) {
     if !egui.wants_any_keyboard_input() {
@@ -166,13 +166,11 @@ fn keys(
             (sandbox.placing, sandbox.joining) = (None, None);
         }
         if let Some(e) = inspector.selected
-            && let Ok((mut control, range)) = controls.get_mut(e)
+            && let Ok((mut control, settings, range)) = controls.get_mut(e)
         {
             control.reset_requested |= pressed(KeyCode::KeyR);
             if range && pressed(KeyCode::KeyF) {
-                let fit = FitDriver::to_convergence(default());
-                commands.entity(e).insert(fit);
-                control.paused = false;
+                commands.entity(e).insert(FitDriver::for_model(settings));
             }
         }
     }

@@ -13,11 +13,11 @@
 
 use crate::model::deform::{MAX_BEND, MAX_TAPER};
 use crate::model::dynamics::ModelState;
-use crate::model::fit::{FitOptions, residuals};
+use crate::model::fit::residuals;
 use crate::model::superquadric::{LEAST_EPSILON, MAX_EPSILON};
 use crate::plugin::{
     FemMesh, FitDriver, FitFinished, GlobalShape, Inertia, LocalDofs, ModelFrozen, ModelSettings,
-    PartJoint, RangeData, RigidState, Scratch, SimControl,
+    PartJoint, RangeData, RigidState, SimControl,
 };
 use bevy::ecs::query::QueryData;
 use bevy::prelude::*;
@@ -202,8 +202,7 @@ pub fn model_inspector_ui(
     if fit {
         commands
             .entity(model.entity)
-            .insert(FitDriver::to_convergence(FitOptions::default()));
-        model.control.paused = false;
+            .insert(FitDriver::for_model(&model.settings));
         said = Some("fitting to convergence".to_string());
     }
     if export_now {
@@ -218,11 +217,14 @@ pub fn model_inspector_ui(
         ui.colored_label(egui::Color32::LIGHT_RED, err);
     }
     if let Some(d) = model.driver {
-        ui.label(match (d.done, d.converged) {
-            (false, _) => "fitting…",
-            (true, true) => "fit at rest",
-            (true, false) => "fit stopped at its step cap",
-        });
+        match d.error() {
+            Some(e) => ui.colored_label(egui::Color32::LIGHT_RED, format!("fit failed: {e}")),
+            None => ui.label(match (d.is_done(), d.converged()) {
+                (false, _) => "fitting…",
+                (true, true) => "fit at rest",
+                (true, false) => "fit stopped at its step cap",
+            }),
+        };
     }
     if let Some(history) = model.residual {
         ui.label("RMS distance to the data (fraction of the diagonal)");
@@ -433,19 +435,39 @@ fn select_grabbed(
     }
 }
 
-/// Samples every [`ResidualHistory`]: the RMS distance of the model's points to its surface.
-fn track_residuals(mut models: Query<(&FemMesh, &Scratch, &RangeData, &mut ResidualHistory)>) {
-    for (fem, scratch, range, mut history) in &mut models {
+/// Samples every [`ResidualHistory`]: the RMS distance of the model's points to its surface,
+/// from the model's components (so that a fit's state is sampled while the model is paused).
+fn track_residuals(
+    mut models: Query<(
+        &FemMesh,
+        &RigidState,
+        &GlobalShape,
+        &LocalDofs,
+        &RangeData,
+        &mut ResidualHistory,
+    )>,
+    mut x: Local<Vec<bevy::math::DVec3>>,
+) {
+    for (fem, rigid, shape, local, range, mut history) in &mut models {
         history.frames += 1;
         if history.frames < history.every.max(1) {
             continue;
         }
         let Some(tess) = fem.get() else { continue };
-        if scratch.node_positions().len() != tess.node_count() {
+        if local.displacement.len() != tess.node_count() {
             continue;
         }
         history.frames = 0;
-        let rms = residuals(tess, scratch.node_positions(), range.forces.points()).rms as f32;
+        crate::model::dynamics::node_positions(
+            tess,
+            rigid.translation,
+            rigid.rotation,
+            &(*shape).into(),
+            &shape.deformation(),
+            &local.displacement,
+            &mut x,
+        );
+        let rms = residuals(tess, &x, range.forces.points()).rms as f32;
         history.values.push_back(rms);
         while history.values.len() > history.capacity {
             history.values.pop_front();

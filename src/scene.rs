@@ -35,7 +35,7 @@ use crate::io::{decode_luminance, decode_points};
 use crate::model::deform::{GlobalDeformation, MAX_BEND, MAX_BEND_WIDTH, MAX_TAPER};
 use crate::model::dynamics::{DynamicsParams, FreeDofs, ModelState, StepError};
 use crate::model::fem::{MIN_K, Tessellation};
-use crate::model::fit::{FitError, FitOptions, FitReport, Initialization, fit};
+use crate::model::fit::{FitError, FitOptions, FitReport, Initialization, Solver, fit};
 use crate::model::forces::image::{
     DEFAULT_BAND, DEFAULT_IMAGE_BETA, DEFAULT_SIGMA, ImageForces, ImageFrame, ImagePotential,
 };

@@ -69,13 +69,27 @@ fn the_named_model_is_selected_and_its_fit_is_plotted_and_reported() {
     app.world_mut()
         .entity_mut(model)
         .insert(FitDriver::to_convergence(FitOptions::default()));
-    for _ in 0..20_000 {
+    // The fit runs on the async compute pool; then enough frames for ten samples.
+    for _ in 0..200_000 {
         app.update();
-        if app.world().get::<FitDriver>(model).unwrap().done {
+        if app.world().get::<FitDriver>(model).unwrap().is_done() {
+            break;
+        }
+        std::thread::sleep(Duration::from_micros(100));
+    }
+    for _ in 0..10_000 {
+        app.update();
+        if app
+            .world()
+            .get::<ResidualHistory>(model)
+            .unwrap()
+            .values
+            .len()
+            >= 10
+        {
             break;
         }
     }
-    app.update();
     let message = &app.world().resource::<InspectorState>().message;
     assert!(message.starts_with("fit at rest after"), "{message}");
     let history = &app.world().get::<ResidualHistory>(model).unwrap().values;

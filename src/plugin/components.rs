@@ -12,7 +12,7 @@ use crate::model::dynamics::{
     DynamicsParams, FreeDofs, ModelState, ModelSurface, NodalForces, Workspace,
 };
 use crate::model::fem::Tessellation;
-use crate::model::fit::{FitOptions, Stage, StageClock};
+use crate::model::fit::FitOptions;
 use crate::model::forces::image::ImageScratch;
 use crate::model::inertia::{InertiaParams, InertiaWorkspace, Velocity};
 use crate::model::superquadric::SuperquadricParams;
@@ -362,78 +362,6 @@ pub struct SimControl {
     pub last_substeps: u32,
 }
 
-/// Drives a model through the stages of a fit to equilibrium, exactly as
-/// [`crate::model::fit::fit`] does (placing, global, joint; reattaching every `reassign_every`
-/// steps and at rest; see [`StageClock`]). While a model has one, the driver, not the periodic
-/// reassignment, decides when points are reattached. When the last stage ends the model is paused
-/// and `done` is set.
-#[derive(Component, Clone, Debug)]
-pub struct FitDriver {
-    /// The fit's options (tolerance, reattachment interval, coverage, …).
-    pub options: FitOptions,
-    /// Stages still to run, the current one first.
-    pub stages: std::collections::VecDeque<Stage>,
-    /// The current stage's clock; `None` until the stage has been entered.
-    pub clock: Option<StageClock>,
-    /// The model stops after this many steps in all.
-    pub budget: u64,
-    /// True while every finished stage ended at rest (not at the budget).
-    pub converged: bool,
-    /// True when no stage is left.
-    pub done: bool,
-    /// Steps taken in stages other than the joint one.
-    pub global_steps: u64,
-    /// Reattachments done by the driver.
-    pub reassignments: u64,
-    /// Steps whose local update was sub-stepped for stability.
-    pub substepped_steps: u64,
-    /// The global stage keeps the model-to-data coverage springs on, as `fit` does for a
-    /// tapered or bent fit of data that surrounds the model (false: the stage's own setting).
-    pub global_coverage: bool,
-    pub(crate) seen_steps: u64,
-}
-
-impl FitDriver {
-    /// A driver that runs `stages` within `budget` steps.
-    pub fn new(options: FitOptions, stages: impl IntoIterator<Item = Stage>, budget: u64) -> Self {
-        let stages: std::collections::VecDeque<Stage> = stages.into_iter().collect();
-        Self {
-            done: stages.is_empty(),
-            options,
-            stages,
-            clock: None,
-            budget,
-            converged: true,
-            global_steps: 0,
-            reassignments: 0,
-            substepped_steps: 0,
-            global_coverage: false,
-            seen_steps: 0,
-        }
-    }
-
-    /// A fit to convergence from the model's current state, as `dsq fit` runs one: the
-    /// placing, global and joint stages within `options.max_steps` steps. Insert it on a model
-    /// with [`RangeData`] and unpause the model; [`FitFinished`](super::FitFinished) is sent
-    /// when it ends.
-    pub fn to_convergence(options: FitOptions) -> Self {
-        Self::new(
-            options,
-            [Stage::Cover, Stage::Global, Stage::Joint],
-            options.max_steps as u64,
-        )
-    }
-
-    /// Queues more stages (e.g. the joint stage after choosing a hypothesis) with a new budget;
-    /// `converged` then speaks of these stages only, as in `fit`.
-    pub fn continue_with(&mut self, stages: impl IntoIterator<Item = Stage>, budget: u64) {
-        self.stages.extend(stages);
-        self.converged = true;
-        self.budget = budget;
-        self.done = self.stages.is_empty();
-    }
-}
-
 /// Per-model buffers reused every step (forces, workspace, node positions, the image forces'
 /// buffers) and the state at spawn for reset.
 #[derive(Component, Clone, Debug, Default)]
@@ -441,7 +369,6 @@ pub(crate) struct Scratch {
     pub(crate) forces: NodalForces,
     pub(crate) workspace: Workspace,
     pub(crate) node_x: Vec<DVec3>,
-    pub(crate) x_new: Vec<DVec3>,
     pub(crate) inertia_workspace: InertiaWorkspace,
     pub(crate) image: ImageScratch,
     pub(crate) initial: Option<(RigidState, GlobalShape, LocalDofs)>,

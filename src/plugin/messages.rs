@@ -3,18 +3,19 @@
 //! (super::DeformableSqSystems), once per event: read them with a `MessageReader` in any later
 //! system.
 
-use super::components::{FitDriver, SimControl};
+use super::components::SimControl;
+use super::fit_driver::FitDriver;
 use bevy::prelude::*;
 
-/// Sent once when a model's [`FitDriver`] runs out of stages: the fit came to rest, or stopped at
-/// its step budget.
+/// Sent once when a model's [`FitDriver`] ends: the fit came to rest, stopped at its step cap, or
+/// failed ([`FitDriver::error`]).
 #[derive(Message, Clone, Copy, Debug, PartialEq)]
 pub struct FitFinished {
     /// The model.
     pub model: Entity,
-    /// True when every stage ended at rest; false when the step budget ended the fit.
+    /// True when the fit ended at rest; false when its step cap ended it, or it failed.
     pub at_rest: bool,
-    /// Steps the model has taken since it was spawned or reset.
+    /// The fit's steps ([`crate::model::fit::FitReport::steps`]; 0 when it failed).
     pub steps: u64,
 }
 
@@ -59,15 +60,15 @@ pub(crate) fn send_messages(
             });
         }
         reported.frozen = control.frozen;
-        let fit_done = driver.as_ref().is_some_and(|d| d.done);
+        let fit_done = driver.as_ref().is_some_and(|d| d.is_done());
         if fit_done
             && !reported.fit_done
             && let Some(d) = &driver
         {
             fits.write(FitFinished {
                 model,
-                at_rest: d.converged,
-                steps: control.steps,
+                at_rest: d.converged(),
+                steps: d.report().map_or(0, |r| r.steps as u64),
             });
         }
         reported.fit_done = fit_done;

@@ -8,12 +8,14 @@
 //! With an `AssetPlugin`, scene files spawn models and their data (see [`scene`]).
 
 pub mod components;
+mod fit_driver;
 pub mod headless;
 mod messages;
 pub mod scene;
 pub(crate) mod systems;
 
 pub use components::*;
+pub use fit_driver::FitDriver;
 pub use messages::{FitFinished, ModelFrozen};
 
 use bevy::ecs::schedule::{InternedScheduleLabel, ScheduleLabel};
@@ -32,7 +34,7 @@ pub enum DeformableSqSystems {
     GatherForces,
     /// One explicit Euler step of C q̇ + K q = f_q (eq. 15).
     Integrate,
-    /// Models with a [`FitDriver`]: rest detection, reattachment and the stages of a fit.
+    /// Models with a [`FitDriver`]: their fits started, followed and written back.
     Converge,
     /// Copy the model frame into `Transform`, send [`FitFinished`] and [`ModelFrozen`] (and, in
     /// debug builds, check every state is finite).
@@ -137,7 +139,7 @@ impl Plugin for DeformableSqPlugin {
                         .chain()
                         .in_set(GatherForces),
                     systems::integrate.in_set(Integrate),
-                    systems::drive_fits.in_set(Converge),
+                    fit_driver::drive_fits.in_set(Converge),
                     (systems::write_transforms, messages::send_messages).in_set(WriteBack),
                 ),
             );

@@ -23,9 +23,7 @@ use super::{
     RangeData, RigidState,
 };
 use crate::model::dynamics::ModelState;
-use crate::model::fit::{Stage, global_stages, has_joint_stage};
 use crate::model::forces::range::RangeForces;
-use crate::model::init::Normalization;
 use crate::scene::{Forces, JointDef, PartDef, SCENE_EXTENSION, SceneData, SceneDef, SceneError};
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext, LoadState};
@@ -170,8 +168,8 @@ pub fn part_settings(part: &PartDef) -> ModelSettings {
 }
 
 /// Spawns part `index` of `scene` as a child of `root`: the model's components, its data
-/// (range parts also get a [`FitDriver`] that runs the scene's fit stages and pauses the model at
-/// rest) and a [`Name`].
+/// (range parts also get a [`FitDriver`] that fits them as `dsq fit --scene` does and leaves the
+/// model paused at rest) and a [`Name`].
 fn spawn_part(
     commands: &mut Commands,
     root: Entity,
@@ -217,13 +215,7 @@ fn spawn_part(
                 .data
                 .range_points(&scene.def, index)
                 .unwrap_or_default();
-            let mut options = part.fit_options(&state);
-            // The fit's rest threshold is relative to the data's RMS radius.
-            options.tolerance *= Normalization::of(&points).scale;
-            let mut stages = global_stages(&options);
-            if has_joint_stage(&options) {
-                stages.push(Stage::Joint);
-            }
+            let options = part.fit_options(&state);
             let mut forces = RangeForces::new(points, *beta, *influence);
             forces.coverage = *coverage;
             e.insert((
@@ -231,7 +223,7 @@ fn spawn_part(
                     forces,
                     reassignments: 0,
                 },
-                FitDriver::new(options, stages, options.max_steps as u64),
+                FitDriver::new(options),
             ));
         }
         Forces::Image { .. } => {

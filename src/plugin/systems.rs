@@ -4,8 +4,6 @@
 
 use super::components::*;
 use crate::model::dynamics::{step, step_prepared};
-use crate::model::fit::{Stage, StageClock, max_motion};
-use crate::model::forces::range::Robust;
 use crate::model::inertia::{self, Velocity};
 use crate::model::joint::{JointLoad, MAX_REACH, MULTIPLIER_RATE, inertial_multiplier_rate};
 use crate::model::superquadric::SuperquadricParams;
@@ -140,55 +138,27 @@ pub fn prepare(
 }
 
 /// Stage `Reassign`: every `reassign_every` steps (and before the first step), reattaches each
-/// range point to its point of influence (nearest node, k-d tree). A model with a [`FitDriver`]
-/// is reattached when it enters a stage, and otherwise when its driver says so (stage `Converge`).
+/// range point to its point of influence (nearest node, k-d tree).
 pub fn reassign(
     mut models: Query<(
         ModelStateRef,
-        &mut ModelSettings,
+        &ModelSettings,
         &SimControl,
         &mut Scratch,
         &mut RangeData,
-        Option<&mut FitDriver>,
     )>,
 ) {
-    models.par_iter_mut().for_each(
-        |(model, mut settings, control, mut scratch, mut range, driver)| {
+    models
+        .par_iter_mut()
+        .for_each(|(model, settings, control, mut scratch, mut range)| {
             let Some(tess) = model.fem.get() else { return };
             if !stepping(control) {
                 return;
             }
-            let due = match driver {
-                Some(mut driver) => {
-                    match (driver.done, driver.clock, driver.stages.front().copied()) {
-                        (false, None, Some(stage)) => {
-                            let clock = StageClock::new(stage);
-                            range.forces.coverage =
-                                clock.coverage(&driver.options, driver.global_coverage);
-                            range.forces.plane = clock.plane(&driver.options);
-                            range.forces.mode = clock.influence(&driver.options);
-                            let ratio = driver.options.outlier_ratio;
-                            if ratio > 0.0 && range.forces.robust.is_none() {
-                                range.forces.robust = Some(Robust::new(ratio));
-                            }
-                            settings.set_if_neq(ModelSettings {
-                                global_only: !clock.local_free(&driver.options),
-                                ..*settings
-                            });
-                            driver.clock = Some(clock);
-                            driver.reassignments += 1;
-                            true
-                        }
-                        _ => false,
-                    }
-                }
-                None => {
-                    control
-                        .steps
-                        .is_multiple_of(settings.reassign_every.max(1) as u64)
-                        || range.forces.influence().len() != range.forces.points().len()
-                }
-            };
+            let due = control
+                .steps
+                .is_multiple_of(settings.reassign_every.max(1) as u64)
+                || range.forces.influence().len() != range.forces.points().len();
             if !due {
                 return;
             }
@@ -196,8 +166,7 @@ pub fn reassign(
             scratch.current_positions(|s| &mut s.node_x, &model, tess);
             range.forces.reassign(tess, &scratch.node_x);
             range.reassignments += 1;
-        },
-    );
+        });
 }
 
 /// Stage `GatherForces`: range springs (eq. 22) with their migration, image forces (eq. 23), and
@@ -412,68 +381,6 @@ pub fn integrate(
             }
         },
     );
-}
-
-/// Stage `Converge`: for models with a [`FitDriver`], measures how far the last step moved the
-/// nodes, reattaches when the stage's clock says so and moves on to the next stage when this one is
-/// at rest (see [`StageClock::after_step`]); pauses the model when the fit is done.
-pub fn drive_fits(
-    mut models: Query<(
-        ModelStateRef,
-        &mut SimControl,
-        &mut Scratch,
-        &mut RangeData,
-        &mut FitDriver,
-    )>,
-) {
-    models
-        .par_iter_mut()
-        .for_each(|(model, mut control, mut scratch, mut range, mut driver)| {
-            let Some(tess) = model.fem.get() else { return };
-            if driver.done || control.steps == driver.seen_steps {
-                return;
-            }
-            driver.seen_steps = control.steps;
-            let Some(mut clock) = driver.clock else {
-                return;
-            };
-            if clock.stage != Stage::Joint {
-                driver.global_steps += 1;
-            }
-            if control.last_substeps > 1 {
-                driver.substepped_steps += 1;
-            }
-            let scratch = &mut *scratch;
-            scratch.current_positions(|s| &mut s.x_new, &model, tess);
-            let motion = max_motion(&scratch.node_x, &scratch.x_new);
-            std::mem::swap(&mut scratch.node_x, &mut scratch.x_new);
-            let mut reassigned = false;
-            let points = range.forces.points().len();
-            let ended = clock.after_step(motion, &driver.options, points, || {
-                reassigned = true;
-                let changed = range.forces.reassign(tess, &scratch.node_x);
-                (changed, range.forces.signature())
-            });
-            driver.reassignments += reassigned as u64;
-            range.reassignments += reassigned as u64;
-            let out_of_steps = control.steps >= driver.budget;
-            if !(ended || out_of_steps) {
-                driver.clock = Some(clock);
-                return;
-            }
-            driver.converged &= ended;
-            driver.stages.pop_front();
-            driver.clock = None;
-            if out_of_steps && !driver.stages.is_empty() {
-                // As in `fit`: stages entered with no steps left end unconverged.
-                driver.converged = false;
-                driver.stages.clear();
-            }
-            if driver.stages.is_empty() {
-                driver.done = true;
-                control.paused = true;
-            }
-        });
 }
 
 /// Stage `WriteBack`: the model frame into the entity's [`Transform`] (the mesh's vertices are

@@ -383,8 +383,17 @@ pub struct FitSettings {
     /// Step cap; unset: 20 000 (range), 3 000 (image).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_steps: Option<u32>,
-    /// Run the global DOFs to rest before freeing the local ones.
+    /// Run the global DOFs to rest before freeing the local ones (the dynamics).
     pub global_first: bool,
+    /// How a range part's fit comes to rest: `Solved` (absent: the default) or `Dynamics` (the
+    /// paper's explicit steps, as the paper's experiments run).
+    #[serde(default, skip_serializing_if = "is_solved")]
+    pub solver: Solver,
+}
+
+/// True for the default solver (not written to a saved scene).
+fn is_solved(solver: &Solver) -> bool {
+    *solver == Solver::Solved
 }
 
 impl Default for FitSettings {
@@ -393,6 +402,7 @@ impl Default for FitSettings {
             tolerance: None,
             max_steps: None,
             global_first: true,
+            solver: Solver::Solved,
         }
     }
 }

@@ -348,6 +348,7 @@ impl PartDef {
             max_steps: self.fit.max_steps.unwrap_or(defaults.max_steps),
             tolerance: self.fit.tolerance.unwrap_or(defaults.tolerance),
             global_first: self.fit.global_first,
+            solver: self.fit.solver,
             global_only: self.free.global_only,
             init,
             ..defaults

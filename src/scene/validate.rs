@@ -64,6 +64,13 @@ impl SceneDef {
         }
         for (i, part) in self.parts.iter().enumerate() {
             part.validate(file, &format!("parts[{i}]"), &self.data)?;
+            if part.fit.solver != Solver::Solved && !matches!(part.forces, Forces::Range { .. }) {
+                return Err(SceneError::at_field(
+                    file,
+                    format!("parts[{i}].fit.solver"),
+                    "chooses how a range fit comes to rest; this part has no range forces",
+                ));
+            }
         }
         for (i, joint) in self.joints.iter().enumerate() {
             let at = |f: &str| format!("joints[{i}].{f}");

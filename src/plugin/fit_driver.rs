@@ -1,0 +1,232 @@
+//! [`FitDriver`]: a whole fit of a model's range data, run in the background and written into
+//! the model's components.
+//!
+//! The fit is the core's, [`crate::model::fit::fit_watched`], the same plan `dsq fit` runs: a
+//! fit through the plugin ends in the same state, bit for bit. It runs on Bevy's
+//! [`AsyncComputeTaskPool`], so a long fit never holds up a frame; while it runs, the state it
+//! has reached (the chosen superquadric) is written into the model as it arrives, and when it
+//! ends the fitted state, on the tessellation it ended on. The model is paused as soon as the
+//! driver is inserted (the fit, not the per-frame simulation, moves it) and stays paused at the
+//! fitted rest.
+//! Removing the driver abandons the fit: the model keeps the state last written.
+
+use super::components::{
+    FemMesh, GlobalShape, LocalDofs, ModelSettings, RangeData, RigidState, SimControl,
+};
+use crate::model::dynamics::ModelState;
+use crate::model::fem::Tessellation;
+use crate::model::fit::{FitError, FitOptions, FitProgress, FitReport, fit_watched};
+use bevy::prelude::*;
+use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, poll_once};
+use std::sync::{Arc, Mutex};
+
+/// A fit to convergence of the model's [`RangeData`] with [`FitOptions`]: insert it on a model
+/// with range data and the fit starts at the next run of the plugin's schedule, from the options'
+/// initialisation (the data's moments by default, so it does not depend on where the model has
+/// been). [`FitFinished`](super::FitFinished) is sent when it ends. Every option means what it
+/// means for [`crate::model::fit::fit`]; a model without range data gets the error "no range
+/// data" ([`FitDriver::error`]).
+#[derive(Component)]
+#[component(on_insert = pause_for_the_fit)]
+pub struct FitDriver {
+    options: FitOptions,
+    /// Choose the membrane's stiffness from the cloud's noise when the fit starts.
+    stiffness_from_noise: bool,
+    run: Run,
+}
+
+/// Where a driver's fit is.
+enum Run {
+    /// Not started yet.
+    Waiting,
+    /// Running: the task, and the latest state and progress it has handed over.
+    Running {
+        task: Task<Result<FitReport, FitError>>,
+        latest: Arc<Mutex<Latest>>,
+    },
+    /// Ended: the report, or why it failed.
+    Ended(Box<Result<FitReport, FitError>>),
+}
+
+/// What a running fit has handed over and the app has not read yet.
+#[derive(Default)]
+struct Latest {
+    state: Option<(usize, ModelState)>,
+    progress: Option<FitProgress>,
+}
+
+impl FitDriver {
+    /// A fit to convergence with `options` (see the type's docs).
+    pub fn new(options: FitOptions) -> Self {
+        Self {
+            options,
+            stiffness_from_noise: false,
+            run: Run::Waiting,
+        }
+    }
+
+    /// [`FitDriver::new`].
+    pub fn to_convergence(options: FitOptions) -> Self {
+        Self::new(options)
+    }
+
+    /// The fit `dsq fit` runs on a user's cloud ([`FitOptions::for_data`], the membrane's
+    /// stiffness chosen from the cloud's noise when the fit starts), with what the model's
+    /// `settings` free: a pure superquadric when they say `global_only`, tapering and bending
+    /// when they free them. The inspector's and the sandbox's fit to convergence.
+    pub fn for_model(settings: &ModelSettings) -> Self {
+        let mut options = FitOptions {
+            global_only: settings.global_only,
+            ..FitOptions::default()
+        }
+        .for_data();
+        options.dynamics.free.taper = settings.taper;
+        options.dynamics.free.bend = settings.bend;
+        Self {
+            stiffness_from_noise: !settings.global_only,
+            ..Self::new(options)
+        }
+    }
+
+    /// The fit's options.
+    pub fn options(&self) -> &FitOptions {
+        &self.options
+    }
+
+    /// True when the fit has ended (at rest, at its step cap, or with an error).
+    pub fn is_done(&self) -> bool {
+        matches!(self.run, Run::Ended(_))
+    }
+
+    /// True when the fit ended at rest.
+    pub fn converged(&self) -> bool {
+        self.report().is_some_and(|r| r.converged)
+    }
+
+    /// The fit's report, once it has ended without an error.
+    pub fn report(&self) -> Option<&FitReport> {
+        match &self.run {
+            Run::Ended(outcome) => outcome.as_ref().as_ref().ok(),
+            _ => None,
+        }
+    }
+
+    /// Why the fit failed, when it did.
+    pub fn error(&self) -> Option<&FitError> {
+        match &self.run {
+            Run::Ended(outcome) => outcome.as_ref().as_ref().err(),
+            _ => None,
+        }
+    }
+
+    /// The last progress the running fit reported.
+    pub fn progress(&self) -> Option<FitProgress> {
+        match &self.run {
+            Run::Running { latest, .. } => lock(latest).progress,
+            _ => None,
+        }
+    }
+}
+
+/// A model gets a [`FitDriver`]: it is paused at once, so that the per-frame simulation takes no
+/// step of its own before the fit moves it.
+fn pause_for_the_fit(
+    mut world: bevy::ecs::world::DeferredWorld,
+    context: bevy::ecs::lifecycle::HookContext,
+) {
+    if let Some(mut control) = world.get_mut::<SimControl>(context.entity) {
+        control.paused = true;
+    }
+}
+
+/// The lock of `latest`, whether or not a fit thread panicked while holding it.
+fn lock(latest: &Mutex<Latest>) -> std::sync::MutexGuard<'_, Latest> {
+    latest.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Writes `state`, on a tessellation with `k`, into a model's components.
+fn write_state(
+    (rigid, shape, local, fem): (
+        &mut RigidState,
+        &mut GlobalShape,
+        &mut LocalDofs,
+        &mut FemMesh,
+    ),
+    k: usize,
+    state: &ModelState,
+) {
+    *rigid = RigidState {
+        translation: state.translation,
+        rotation: state.rotation,
+    };
+    *shape = GlobalShape::new(state.shape, state.deformation);
+    local.displacement.clone_from(&state.displacement);
+    if fem.k != k {
+        // The plugin re-tessellates at its next step; the displacements are already the new
+        // mesh's, so nothing is carried over.
+        fem.k = k;
+    }
+}
+
+/// Stage `Converge`: starts the fits of new drivers on the async compute pool (pausing their
+/// models), writes what running fits have handed over into their models, and ends the fits whose
+/// task is done, writing the fitted state.
+pub(crate) fn drive_fits(
+    mut models: Query<(
+        &mut FitDriver,
+        Option<&RangeData>,
+        &mut SimControl,
+        &mut RigidState,
+        &mut GlobalShape,
+        &mut LocalDofs,
+        &mut FemMesh,
+    )>,
+) {
+    for (mut driver, range, mut control, mut rigid, mut shape, mut local, mut fem) in &mut models {
+        let components = (&mut *rigid, &mut *shape, &mut *local, &mut *fem);
+        let driver = &mut *driver;
+        match &mut driver.run {
+            Run::Waiting => {
+                control.paused = true;
+                let Some(range) = range else {
+                    let error = FitError::BadOption("no range data to fit".into());
+                    driver.run = Run::Ended(Box::new(Err(error)));
+                    continue;
+                };
+                let points = range.forces.points().to_vec();
+                if driver.stiffness_from_noise {
+                    driver.options = driver.options.with_stiffness_from_noise(&points).0;
+                    driver.stiffness_from_noise = false;
+                }
+                let options = driver.options;
+                let latest = Arc::new(Mutex::new(Latest::default()));
+                let shared = latest.clone();
+                let task = AsyncComputeTaskPool::get().spawn(async move {
+                    let progress = |p: &FitProgress| lock(&shared).progress = Some(*p);
+                    let watch = |tess: &Tessellation, state: &ModelState| {
+                        lock(&shared).state = Some((tess.k, state.clone()));
+                    };
+                    fit_watched(&points, &options, progress, watch)
+                });
+                driver.run = Run::Running { task, latest };
+            }
+            Run::Running { task, latest } => {
+                if let Some((k, state)) = lock(latest).state.take() {
+                    write_state(components, k, &state);
+                }
+                if let Some(outcome) = block_on(poll_once(task)) {
+                    if let Ok(report) = &outcome {
+                        write_state(
+                            (&mut *rigid, &mut *shape, &mut *local, &mut *fem),
+                            report.tess.k,
+                            &report.state,
+                        );
+                    }
+                    driver.run = Run::Ended(Box::new(outcome));
+                    control.paused = true;
+                }
+            }
+            Run::Ended(_) => {}
+        }
+    }
+}
