@@ -527,10 +527,6 @@ fn every_shipped_cloud_fits_through_the_app_to_the_cores_mesh() {
     let dir = scratch();
     for (c, cloud) in clouds.iter().enumerate() {
         for (f, flags) in flag_sets.iter().enumerate() {
-            // Tapering and bending run the dynamics: one cloud of each kind is enough there.
-            if f == 3 && !cloud.ends_with("example_1.ply") {
-                continue;
-            }
             let mesh = |through: &[&str]| {
                 let path = dir.join(format!("app_{c}_{f}_{}.obj", through.len()));
                 let mut args = vec![
@@ -674,15 +670,9 @@ fn the_solved_fit_is_the_default_and_fits_a_clean_cloud_in_far_fewer_steps() {
         2 * solved_steps < steps,
         "solved {solved_steps} steps, dynamics {steps}"
     );
-    // Tapering and bending run the dynamics, and say so; asked for by name, the solved fit
-    // refuses them.
-    let tapered = line(&["--global-only", "--taper"]);
-    assert_eq!(tapered["solver"], "dynamics", "{tapered}");
-    assert_bad_input(
-        &[cloud, "--solver", "solved", "--taper"],
-        "--solver",
-        "taper",
-    );
+    // Tapering and bending are solved for too.
+    let tapered = line(&["--global-only", "--taper", "--bend"]);
+    assert_eq!(tapered["solver"], "solved", "{tapered}");
     assert_bad_input(&["--paper", "egg", "--solver", "lm"], "--solver", "points");
     assert_bad_input(&[cloud, "--refine"], "--refine", "unexpected");
 }

@@ -222,7 +222,7 @@ fn a_driver_on_a_model_without_range_data_says_so() {
 #[test]
 fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
     let points = cloud(77);
-    // A cone fitted with tapering and bending free (the dynamics), and a dense one-view cloud
+    // A cone fitted with tapering and bending free, and a dense one-view cloud
     // with local DOFs (a finer tessellation chosen from the data).
     let cone_shape = bevy_deformable_sq::synthetic::Banana::cone(1.5, 0.5, 1.0);
     let turn = DQuat::from_axis_angle(DVec3::new(-0.4, 0.8, 0.3).normalize(), 2.1);
@@ -267,6 +267,13 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
         (&points, dynamics),
         (&points, dynamics.robust()),
         (&cone, deformed.for_data()),
+        (
+            &cone,
+            FitOptions {
+                solver: Solver::Dynamics,
+                ..deformed
+            },
+        ),
         (
             &half,
             FitOptions {

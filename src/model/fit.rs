@@ -3,13 +3,12 @@
 //! [`fit`] runs one of two plans ([`FitOptions::solver`]):
 //!
 //! - **Solved** (the default, beyond the paper; [`Solver::Solved`], module `solved`): the
-//!   superquadric's rest state is solved for by Levenberg–Marquardt ([`crate::model::lm::solve`]),
-//!   and with local DOFs the membrane's by linear solves for fixed attachments
+//!   superquadric's rest state (with its tapering and bending, when free) is solved for by
+//!   Levenberg–Marquardt ([`crate::model::lm::solve`], [`crate::model::lm::fit_deformed`]), and
+//!   with local DOFs the membrane's by linear solves for fixed attachments
 //!   ([`implicit_joint_options`]), alternated with reattachment until the attachments settle;
 //! - **the paper's dynamics** ([`Solver::Dynamics`], module `relax`): the explicit Euler steps of
-//!   eq. (15) under range springs, stage by stage ([`Stage`]), as section VI-B runs them. Fits
-//!   that free tapering or bending take this plan whatever the option says, and say so
-//!   ([`FitReport::solver`]).
+//!   eq. (15) under range springs, stage by stage ([`Stage`]), as section VI-B runs them.
 //!
 //! **Frame and scale.** Both work on the data translated to its centroid and divided by its RMS
 //! radius, and map the result back, so a fit does not depend on where the data sits or on its
@@ -18,7 +17,7 @@
 use super::centreline::{seed_deformation, seen_whole};
 use super::deform::GlobalDeformation;
 use super::dynamics::{
-    DynamicsParams, ModelState, NodalForces, StepError, Workspace, node_positions, step_prepared,
+    DynamicsParams, ModelState, NodalForces, StepError, Workspace, step_prepared,
 };
 use super::fem::Tessellation;
 use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces, Robust};
@@ -104,8 +103,7 @@ pub struct FitReport {
     /// Initial pose the fit started from (data frame): the chosen hypothesis, or the similarity
     /// candidate the fit moved to.
     pub initial: InitialPose,
-    /// The solver that ran: [`FitOptions::solver`], or [`Solver::Dynamics`] for a fit with
-    /// tapering or bending, which the solved fit does not take yet.
+    /// The solver that ran ([`FitOptions::solver`]).
     pub solver: Solver,
 }
 

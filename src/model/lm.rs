@@ -28,8 +28,12 @@ use super::superquadric::{LEAST_EPSILON, MAX_EPSILON, MIN_ASPECT, SuperquadricPa
 use glam::{DQuat, DVec3};
 
 mod coverage;
+mod deformed;
 pub mod search;
 pub use coverage::{COVERAGE_K, Coverage};
+pub use deformed::{
+    DeformedFit, DeformedPose, NUM_DEFORMED, SEED_RAYS, deformed_distances, fit_deformed,
+};
 pub use search::*;
 #[cfg(test)]
 mod tests;

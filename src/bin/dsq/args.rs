@@ -28,8 +28,8 @@ pub enum Paper {
 /// How a point fit comes to rest (`--solver`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum SolverArg {
-    /// Solved for (the default): the superquadric by Levenberg–Marquardt, the membrane by
-    /// linear solves (no --taper or --bend yet; those run the dynamics).
+    /// Solved for (the default): the superquadric (with its tapering and bending) by
+    /// Levenberg–Marquardt, the membrane by linear solves.
     #[value(alias = "lm")]
     Solved,
     /// The paper's explicit dynamics under range springs.
@@ -108,7 +108,7 @@ pub struct FitArgs {
     pub paper_forces: bool,
     /// How the fit comes to rest: `solved` (the default; `lm` is the same): the superquadric
     /// solved for by Levenberg–Marquardt and, with local DOFs, the membrane by linear solves; or
-    /// `dynamics`: the paper's explicit steps. --taper and --bend run the dynamics.
+    /// `dynamics`: the paper's explicit steps.
     #[arg(long, value_enum, help_heading = "Point clouds")]
     pub solver: Option<SolverArg>,
     /// Point-to-plane springs in the global stage.
@@ -435,12 +435,6 @@ impl FitArgs {
         match self.solver {
             Some(_) if !is_file => {
                 return Err("--solver acts on POINTS fits".into());
-            }
-            Some(SolverArg::Solved) if o.dynamics.free.taper || o.dynamics.free.bend => {
-                return Err(
-                    "--solver solved takes no --taper or --bend yet; drop --solver to fit them by the dynamics"
-                        .into(),
-                );
             }
             Some(SolverArg::Solved) => o.solver = Solver::Solved,
             Some(SolverArg::Dynamics) => o.solver = Solver::Dynamics,

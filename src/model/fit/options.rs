@@ -69,7 +69,7 @@ pub struct FitOptions {
     /// Initial pose and shape.
     pub init: Initialization,
     /// How the fit comes to rest: solved for (the default), or by the paper's dynamics
-    /// ([`Solver`]). A fit that frees tapering or bending runs the dynamics either way.
+    /// ([`Solver`]).
     pub solver: Solver,
 }
 

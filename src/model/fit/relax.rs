@@ -55,7 +55,16 @@ impl<'a> Relaxation<'a> {
         unit: &[DVec3],
         start: &InitialPose,
     ) -> Self {
-        let state = start_state(tess, opts, unit, start);
+        Self::from_state(tess, opts, unit, start_state(tess, opts, unit, start))
+    }
+
+    /// A relaxation of `unit` from `state` as it is (its deformation and displacements kept).
+    pub(super) fn from_state(
+        tess: &'a Tessellation,
+        opts: &'a FitOptions,
+        unit: &[DVec3],
+        state: ModelState,
+    ) -> Self {
         let mut range = RangeForces::new(unit.to_vec(), opts.beta, opts.influence);
         range.coverage = 0.0;
         range.robust = (opts.outlier_ratio > 0.0).then(|| Robust::new(opts.outlier_ratio));

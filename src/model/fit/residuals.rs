@@ -156,17 +156,11 @@ pub(super) fn distances(
     }
 }
 
-/// The tessellation (k = 151, 22 803 nodes) on which [`fit_residuals`] measures a pure
-/// superquadric: its chords lie within 2·10⁻⁵ of the radius of curvature of the surface, below
-/// the residuals of a noise-free fit.
-pub const SURFACE_RESIDUAL_K: usize = 151;
-
 /// The residuals a fit reports for `state` (fitted on `tess`): a model with local displacements is
 /// measured on its own mesh, which is what it renders; a pure superquadric (all displacements
-/// zero) on its continuous surface, which the refining stage fits
-/// ([`ModelSurface`](crate::model::dynamics::ModelSurface)) and which the 963-node mesh's chords would
-/// misstate by more than a clean fit's distances: exactly ([`surface_distances`]) when it is
-/// neither tapered nor bent, else on a [`SURFACE_RESIDUAL_K`] tessellation.
+/// zero) on its continuous surface, which the solved fit fits and which the 963-node mesh's
+/// chords would misstate by more than a clean fit's distances: [`surface_distances`], or for a
+/// tapered or bent one [`crate::model::lm::deformed_distances`].
 pub fn fit_residuals(tess: &Tessellation, state: &ModelState, points: &[DVec3]) -> Residuals {
     // Measured in the points' unit frame, so that no squared distance overflows at any scale;
     // the figures are relative to the diagonal, so only it is scaled back.
@@ -187,34 +181,21 @@ pub(super) fn unit_residuals(
     points: &[DVec3],
 ) -> Residuals {
     let pure = state.displacement.iter().all(|d| *d == DVec3::ZERO);
-    if pure && state.deformation.is_identity() {
+    if pure {
         let pose = InitialPose::of(state);
-        let d = surface_distances(&pose, points);
+        let d = if state.deformation.is_identity() {
+            surface_distances(&pose, points)
+        } else {
+            let deformed = crate::model::lm::DeformedPose {
+                pose,
+                deformation: state.deformation,
+            };
+            crate::model::lm::deformed_distances(&deformed, points)
+        };
         return Residuals::of(d, bounding_diagonal(points));
     }
-    let fine;
-    let tess = if pure && tess.k < SURFACE_RESIDUAL_K {
-        fine = Tessellation::new(SURFACE_RESIDUAL_K);
-        &fine
-    } else {
-        tess
-    };
-    // Displacements missing at the end count as zero: the pure superquadric on the fine mesh.
-    let displacement = if pure {
-        &[][..]
-    } else {
-        &state.displacement[..]
-    };
     let mut x = Vec::new();
-    node_positions(
-        tess,
-        state.translation,
-        state.rotation,
-        &state.shape,
-        &state.deformation,
-        displacement,
-        &mut x,
-    );
+    state.node_positions(tess, &mut x);
     residuals(tess, &x, points)
 }
 

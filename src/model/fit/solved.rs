@@ -4,16 +4,19 @@
 //! thousands of small steps. Here it is solved for:
 //!
 //! 1. the superquadric by Levenberg–Marquardt ([`crate::model::lm::solve`]: the axis hypotheses
-//!    and similarity candidates searched on a subsample, the kept fit polished on every point).
-//!    A pure superquadric ends there;
+//!    and similarity candidates searched on a subsample, the kept fit polished on every point);
+//!    with tapering or bending free, then its deformation with it
+//!    ([`crate::model::lm::fit_deformed`], from each of its axes as z, undeformed and as the
+//!    points' centreline shows). A pure superquadric ends there;
 //! 2. with local DOFs, the membrane with the global DOFs held ([`implicit_joint_options`]): each
 //!    step solves (κ + K) d = f + κ d by conjugate gradients for the current attachments and
 //!    then reattaches the points, so it ends in tens of steps, on the model's tessellation and
 //!    then on a finer one chosen once from the data ([`joint_k`]). The membrane is solved on two
 //!    carriers side by side, the fitted superquadric and an ellipsoid placed over the whole cloud
-//!    ([`crate::model::lm::ellipsoid_carrier`]), and the one that lies nearer the points is kept:
-//!    which carrier a membrane reaches the points from decides where it comes to rest, and
-//!    neither is the better on every cloud (docs/results.md, "The solved fit").
+//!    ([`crate::model::lm::ellipsoid_carrier`]; not with tapering or bending free, whose
+//!    deformed fit is the carrier), and the one that lies nearer the points is kept: which
+//!    carrier a membrane reaches the points from decides where it comes to rest, and neither is
+//!    the better on every cloud (docs/results.md, "The solved fit").
 //!
 //! The membrane sees at most [`FINE_POINTS`] of the points, spread through a larger cloud; the
 //! residuals are measured on every point.
@@ -23,11 +26,9 @@ use crate::model::dynamics::FreeDofs;
 use crate::model::lm::{FINE_POINTS, spread_sample};
 use crate::model::superquadric::{LEAST_EPSILON, NUM_SHAPE};
 
-/// True when `opts` ask for the solved fit and the fit is one it can do: no tapering or
-/// bending.
+/// True when `opts` ask for the solved fit.
 pub fn solves(opts: &FitOptions) -> bool {
-    let free = &opts.dynamics.free;
-    opts.solver == Solver::Solved && !free.taper && !free.bend
+    opts.solver == Solver::Solved
 }
 
 /// Most EM rounds of a Levenberg–Marquardt fit, and Levenberg–Marquardt steps in a round.
@@ -134,18 +135,33 @@ pub(super) fn fit_solved(
     let fit = &solution.fit;
     let pose = fit.pose;
     let mut state = ModelState::new(&tess, pose.translation, pose.rotation, pose.shape);
-    let (mut steps, global_steps) = (solution.iterations, fit.iterations);
+    let (mut steps, mut global_steps) = (solution.iterations, fit.iterations);
     let (mut converged, mut reassignments, substepped) = (fit.converged, 0, 0);
+    let free = opts.dynamics.free;
+    if free.taper || free.bend {
+        let deformed = solve_deformed(unit, &pose, fit.sigma2, &lm, (free.taper, free.bend));
+        let p = deformed.pose.pose;
+        (state.translation, state.rotation, state.shape) = (p.translation, p.rotation, p.shape);
+        state.deformation = deformed.pose.deformation;
+        steps += deformed.iterations;
+        global_steps += deformed.iterations;
+        converged &= deformed.converged;
+    }
     watch(&tess, &state);
     if local {
         // The membrane has a thousand-odd nodes: a spread of FINE_POINTS of a larger cloud
         // attaches to them as well as all of it, and keeps each reattachment's search short.
         let unit = &spread_sample(unit, FINE_POINTS)[..];
-        let mut carriers = vec![pose];
-        if let Some(f) = crate::model::lm::ellipsoid_carrier(unit, &starts, sigma2, &lm) {
-            carriers.push(f.pose);
+        let mut carriers = vec![state.clone()];
+        // With tapering or bending free the deformed fit is the carrier: its deformation is
+        // what was asked for, and a membrane on an ellipsoid would make it up instead.
+        if !(free.taper || free.bend)
+            && let Some(f) = crate::model::lm::ellipsoid_carrier(unit, &starts, sigma2, &lm)
+        {
+            let p = f.pose;
+            carriers.push(ModelState::new(&tess, p.translation, p.rotation, p.shape));
         }
-        let run = |carrier: &InitialPose, progress: &mut dyn FnMut(&FitProgress)| {
+        let run = |carrier: &ModelState, progress: &mut dyn FnMut(&FitProgress)| {
             membrane(&tess, opts, unit, carrier, steps, progress)
         };
         let mut best: Option<Membrane> = None;
@@ -185,6 +201,75 @@ pub(super) fn fit_solved(
     })
 }
 
+/// The tapering and bending of a solved fit (`free`: taper, bend) from its superquadric `pose`
+/// (unit frame): [`crate::model::lm::fit_deformed`] from the superquadric with each of its axes as
+/// z, undeformed and as the points' centreline shows ([`seed_deformation`]), side by side on a
+/// subsample; the nearest to it kept and polished on every point (on [`FINE_POINTS`] of a larger
+/// cloud).
+fn solve_deformed(
+    unit: &[DVec3],
+    pose: &InitialPose,
+    sigma2: f64,
+    lm: &LmOptions,
+    (taper, bend): (bool, bool),
+) -> crate::model::lm::DeformedFit {
+    use crate::model::lm::{DeformedPose, coarse_sample, fit_deformed};
+    let free = [taper, taper, bend, bend];
+    let sample = coarse_sample(unit);
+    // Tapering and bending act along the model's z: each of the fit's axes in turn as z (the
+    // superquadric alone may have put the object's axis on any), undeformed and as its
+    // centreline shows.
+    let mut starts = Vec::new();
+    for turns in 0..3 {
+        let turned = turned_axes(pose, turns, false);
+        starts.push(DeformedPose {
+            pose: turned,
+            deformation: GlobalDeformation::IDENTITY,
+        });
+        // The centreline's start is a new shape: its exponents start round, not at the pure
+        // fit's (which may have made a double cone of a cone).
+        if let Some((mut p, deformation)) = seed_deformation(&sample, &turned, taper, bend) {
+            (p.shape.e1, p.shape.e2) = (1.0, 1.0);
+            starts.push(DeformedPose {
+                pose: p,
+                deformation,
+            });
+        }
+    }
+    let run = |start: &DeformedPose, _: &mut dyn FnMut(&FitProgress)| {
+        fit_deformed(&sample, start, sigma2, lm, free)
+    };
+    let fits = run_parallel(&starts, run, &mut |_| {});
+    let iterations: u32 = fits.iter().map(|f| f.iterations).sum();
+    let mut best = fits
+        .into_iter()
+        .filter(|f| f.mean_distance.is_finite())
+        .min_by(|a, b| a.mean_distance.total_cmp(&b.mean_distance))
+        .unwrap_or(crate::model::lm::DeformedFit {
+            pose: starts[0],
+            mean_distance: f64::INFINITY,
+            iterations: 0,
+            converged: false,
+        });
+    if sample.len() < unit.len() {
+        let fine = LmOptions {
+            max_rounds: crate::model::lm::FINE_ROUNDS,
+            ..*lm
+        };
+        let converged = best.converged;
+        best = fit_deformed(
+            &spread_sample(unit, FINE_POINTS),
+            &best.pose,
+            sigma2,
+            &fine,
+            free,
+        );
+        best.converged |= converged;
+    }
+    best.iterations += iterations;
+    best
+}
+
 /// A membrane at rest on a carrier superquadric ([`membrane`]).
 struct Membrane {
     tess: Tessellation,
@@ -196,7 +281,8 @@ struct Membrane {
     converged: bool,
 }
 
-/// The local DOFs brought to rest on the superquadric `carrier` (unit frame), its global DOFs
+/// The local DOFs brought to rest on the superquadric `carrier` (unit frame, with its
+/// deformation), its global DOFs
 /// held: by [`implicit_joint_options`]' linear solves for fixed attachments, on `tess` and then,
 /// with [`FitOptions::k_from_data`], on the finer tessellation [`joint_k`] chooses from the
 /// carrier's nodes (each a few tens of solves). `spent` steps of the options' cap are used.
@@ -204,13 +290,12 @@ fn membrane(
     tess: &Tessellation,
     opts: &FitOptions,
     unit: &[DVec3],
-    carrier: &InitialPose,
+    carrier: &ModelState,
     spent: u32,
     progress: &mut dyn FnMut(&FitProgress),
 ) -> Result<Membrane, FitError> {
     let mut x = Vec::new();
-    ModelState::new(tess, carrier.translation, carrier.rotation, carrier.shape)
-        .node_positions(tess, &mut x);
+    carrier.node_positions(tess, &mut x);
     let k = if opts.k_from_data {
         joint_k(tess, &x, unit, opts.k)
     } else {
@@ -219,7 +304,7 @@ fn membrane(
     let joint = implicit_joint_options(opts);
     let budget = opts.max_steps.saturating_sub(spent);
     let fine = Tessellation::new(k);
-    let mut relax = Relaxation::new(tess, &joint, unit, carrier);
+    let mut relax = Relaxation::from_state(tess, &joint, unit, carrier.clone());
     let mut converged = relax.run(Stage::Joint, budget, &mut |p: &FitProgress| progress(p))?;
     let (steps, reassignments, state, x) = if k != tess.k {
         let mut on_fine = relax.retessellate(&fine);
