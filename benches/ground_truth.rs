@@ -102,7 +102,7 @@ fn main() -> ExitCode {
         }
     };
     println!(
-        "| cloud | ε1, ε2 (truth) | ours, global only: axes / ε / translation / rotation | ours, `--robust`, dynamics | ours, `--robust`, Levenberg–Marquardt | EMS |"
+        "| cloud | ε1, ε2 (truth) | ours, global only: axes / ε / translation / rotation | ours, `--robust`, dynamics | ours, `--robust`, solved (the default) | EMS |"
     );
     println!("|---|---|---|---|---|---|");
     let (mut plain, mut robust, mut solved, mut theirs) =
@@ -171,8 +171,8 @@ fn main() -> ExitCode {
         .map(score);
         let [
             (p, _, _),
-            (r, pure, _),
-            (l, _, _),
+            (r, _, _),
+            (l, pure, _),
             (_, paper_local, paper_steps),
             (_, ours_local, ours_steps),
         ] = match runs.into_iter().collect::<Result<Vec<_>, _>>() {

@@ -36,8 +36,8 @@
 //! global DOFs), `LocalDofs` (a displacement per node) and `FemMesh` (the tessellation they live
 //! on), with `ModelSettings` (stiffness, damping, time step, which DOFs are free). Its data is
 //! `RangeData` (points), `ImageData` (an image's potential) or `SpringForces` (springs to world
-//! anchors, the mouse's among them). `FitDriver` runs a whole fit in stages and sends
-//! `FitFinished`; `PartJoint` joins two parts; `Inertia` adds mass (second-order dynamics).
+//! anchors, the mouse's among them). `FitDriver` runs the core's whole fit of a model's range data
+//! in the background, writes it into the model and sends `FitFinished`; `PartJoint` joins two parts; `Inertia` adds mass (second-order dynamics).
 //!
 //! ## Features
 //!

@@ -9,7 +9,7 @@ use bevy::app::PluginGroupBuilder;
 use bevy::prelude::*;
 use bevy::render::RenderPlugin;
 use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured, save_to_disk};
-use bevy_deformable_sq::prelude::{SceneInstance, SimControl, simulation_task_pools};
+use bevy_deformable_sq::prelude::{FitDriver, SceneInstance, SimControl, simulation_task_pools};
 use std::path::{Path, PathBuf};
 
 /// A scripted run with no model to simulate after this many frames gives up.
@@ -105,7 +105,7 @@ pub fn maybe_add(app: &mut App) {
 fn take(
     mut commands: Commands,
     mut req: ResMut<Request>,
-    models: Query<&SimControl>,
+    models: Query<(&SimControl, Option<&FitDriver>)>,
     scenes: Query<&SceneInstance>,
     mut exit: MessageWriter<AppExit>,
 ) {
@@ -125,15 +125,18 @@ fn take(
         req.taken = true;
         return;
     }
-    // Every model has taken its steps, or stopped (a fit at rest pauses its model).
+    // Every model has taken its steps, or stopped; a model with a fit once the fit has ended (a
+    // fit pauses its model while it runs).
     let ready = !models.is_empty()
-        && models
-            .iter()
-            .all(|c| c.steps >= req.after_steps || c.paused || c.frozen);
+        && models.iter().all(|(c, fit)| {
+            fit.is_none_or(FitDriver::is_done)
+                && (c.steps >= req.after_steps || c.paused || c.frozen)
+        });
     if req.taken || req.frames < 10 || !ready {
         return;
     }
     req.taken = true;
+    info!("every model ready after {} frames: screenshot", req.frames);
     commands
         .spawn(Screenshot::primary_window())
         .observe(save_to_disk(req.path.clone()))
