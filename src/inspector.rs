@@ -458,15 +458,7 @@ fn track_residuals(
             continue;
         }
         history.frames = 0;
-        crate::model::dynamics::node_positions(
-            tess,
-            rigid.translation,
-            rigid.rotation,
-            &(*shape).into(),
-            &shape.deformation(),
-            &local.displacement,
-            &mut x,
-        );
+        crate::plugin::world_positions(tess, rigid, shape, local, &mut x);
         let rms = residuals(tess, &x, range.forces.points()).rms as f32;
         history.values.push_back(rms);
         while history.values.len() > history.capacity {

@@ -67,18 +67,11 @@ fn until_done(app: &mut App, e: Entity) {
 /// The model's state as its components hold it.
 fn state_of(app: &App, e: Entity) -> ModelState {
     let w = app.world();
-    let (r, s, l) = (
+    bevy_deformable_sq::plugin::model_state(
         w.get::<RigidState>(e).unwrap(),
         w.get::<GlobalShape>(e).unwrap(),
         w.get::<LocalDofs>(e).unwrap(),
-    );
-    ModelState {
-        translation: r.translation,
-        rotation: r.rotation,
-        shape: (*s).into(),
-        deformation: s.deformation(),
-        displacement: l.displacement.clone(),
-    }
+    )
 }
 
 /// The report of the driver on `e`.

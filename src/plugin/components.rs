@@ -504,6 +504,17 @@ pub fn model_surface<'a>(
     )
 }
 
+/// The core's [`ModelState`] of a model's components, as they are.
+pub fn model_state(rigid: &RigidState, shape: &GlobalShape, local: &LocalDofs) -> ModelState {
+    ModelState {
+        translation: rigid.translation,
+        rotation: rigid.rotation,
+        shape: (*shape).into(),
+        deformation: shape.deformation(),
+        displacement: local.displacement.clone(),
+    }
+}
+
 /// Assembles the core's [`ModelState`] from the components (moving the displacement out).
 pub(crate) fn take_state(
     rigid: &RigidState,

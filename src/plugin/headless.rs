@@ -5,8 +5,8 @@
 
 use super::{
     DeformableSqPlugin, FemMesh, FitDriver, GlobalShape, LocalDofs, RangeData, RigidState,
+    model_state,
 };
-use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
 use crate::model::fit::{FitError, FitOptions, FitReport, validate_options, validate_points};
 use bevy::math::DVec3;
@@ -54,15 +54,8 @@ pub fn fit_headless(points: &[DVec3], opts: &FitOptions) -> Result<FitReport, Fi
     ) else {
         return Err(FitError::Degenerate);
     };
-    let state = ModelState {
-        translation: rigid.translation,
-        rotation: rigid.rotation,
-        shape: (*shape).into(),
-        deformation: shape.deformation(),
-        displacement: local.displacement.clone(),
-    };
     Ok(FitReport {
-        state,
+        state: model_state(rigid, shape, local),
         tess: Tessellation::new(fem.k),
         ..report.clone()
     })

@@ -380,13 +380,7 @@ pub fn scene_from_world(
         part.free.taper = s.taper;
         part.free.bend = s.bend;
         part.inertia = world.get::<Inertia>(e).map(|i| i.params);
-        let state = ModelState {
-            translation: rigid.translation,
-            rotation: rigid.rotation,
-            shape: (*shape).into(),
-            deformation: shape.deformation(),
-            displacement: local.displacement.clone(),
-        };
+        let state = super::model_state(rigid, shape, local);
         let sized = local.displacement.len() == fem.k * fem.k + 2;
         def.set_state(index, &state, include_local && sized);
     }
