@@ -107,8 +107,8 @@ pub struct FitReport {
     pub solver: Solver,
 }
 
-/// The largest distance any node moved between two sets of node positions: the rest measure of
-/// [`StageClock::after_step`].
+/// The largest distance any node moved between two sets of node positions: the measure a fit's
+/// rest test compares with its motion tolerance.
 pub fn max_motion(before: &[DVec3], after: &[DVec3]) -> f64 {
     before
         .iter()

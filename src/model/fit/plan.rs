@@ -18,7 +18,7 @@ pub enum Stage {
 /// The bookkeeping of one stage of the dynamics: how the forces and free DOFs are set, when
 /// points are reattached and when the model is at rest.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct StageClock {
+pub(crate) struct StageClock {
     /// The stage being run.
     pub stage: Stage,
     /// Steps since the last reattachment.
@@ -83,13 +83,13 @@ impl StageClock {
 /// The step budget of each similarity candidate ([`FitOptions::similarity_switch`]) when `spent`
 /// of the fit's `max_steps` are used: an equal share of the rest, as the hypotheses share the
 /// whole, so that the candidates can run side by side and the fit stays within its cap.
-pub fn similarity_share(max_steps: u32, spent: u32, candidates: usize) -> u32 {
+pub(crate) fn similarity_share(max_steps: u32, spent: u32, candidates: usize) -> u32 {
     max_steps.saturating_sub(spent) / candidates.max(1) as u32
 }
 
 /// The stages a fit runs before choosing among initial hypotheses: placing (when `coverage` > 0)
 /// and the global stage (unless the local DOFs move from the start).
-pub fn global_stages(opts: &FitOptions) -> Vec<Stage> {
+pub(crate) fn global_stages(opts: &FitOptions) -> Vec<Stage> {
     let mut stages = Vec::new();
     if opts.coverage > 0.0 {
         stages.push(Stage::Cover);
