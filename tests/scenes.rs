@@ -56,7 +56,7 @@ fn every_shipped_scene_loads_and_runs_headless() {
         let (def, data) = SceneDef::load_file(&shipped(name)).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(def.parts.len(), parts, "{name}");
         // A few hundred steps each: every part must be pulled towards its data.
-        let runs = run_scene(&def, &data, Some(400));
+        let runs = run_scene(&def, &data, Some(600));
         for (i, run) in runs.into_iter().enumerate() {
             let run = run.unwrap_or_else(|e| panic!("{name}: {e}"));
             let part = &def.parts[i];

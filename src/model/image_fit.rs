@@ -32,8 +32,8 @@ use super::forces::image::{
 };
 use super::image_measure::PixelMoments;
 pub use super::image_measure::{
-    PartSilhouette, iou, outline_potential, outline_segments, part_silhouette, parts_on,
-    silhouette_iou, silhouette_mask,
+    PartRegion, PartSilhouette, iou, outline_potential, outline_segments, part_region,
+    part_silhouette, parts_on, silhouette_iou, silhouette_mask,
 };
 use super::superquadric::SuperquadricParams;
 use glam::{DMat3, DQuat, DVec2, DVec3};
@@ -317,11 +317,12 @@ impl ImageFitOptions {
             band: self.band,
             outline_only: self.outline_only,
             region: self.region,
+            region_model: None,
             oriented: false,
         }
     }
 
-    /// The pestle experiment: k = 71 (5043 nodes), w0 = 1e-6, w1 = 4e-2.
+    /// The pestle experiment: k = 71 (5043 nodes), w0 = 1e-6, w1 = 4e-2, ε fixed.
     pub fn pestle() -> Self {
         let mut o = Self {
             k: 71,
@@ -418,6 +419,53 @@ pub struct ImagePartFit {
     pub outline_before: f64,
     /// [`outline_potential`] after the fit.
     pub outline_after: f64,
+    /// Why the part was stopped before rest, in one line: it left the image, or grew past
+    /// [`MAX_GROWTH`] times its placed area (see [`fit_part`]). `None` for a part that ran to
+    /// rest or to the step cap.
+    pub stopped: Option<String>,
+}
+
+/// Steps between updates of a part's [`RegionModel`](super::forces::image::RegionModel) and
+/// checks of its size.
+pub const REGION_REFRESH: usize = 10;
+
+/// A part whose projected silhouette grows past this many times its placed area is stopped: the
+/// image gave it nothing to stop at (a balloon in a region that looks like its inside).
+pub const MAX_GROWTH: f64 = 4.0;
+
+/// Measures a part's region ([`part_region`], from its node world positions `x`) and sets
+/// `forces.region_model` from it: the image's own model on a two-tone image
+/// ([`ImagePotential::two_tone`]), else the part's (kept as it was when the measure gives none).
+/// [`fit_part`] calls it every [`REGION_REFRESH`] steps, and so does the plugin's simulation of
+/// a model with a region force. Returns the measure.
+pub fn refresh_region_model(
+    forces: &mut ImageForces,
+    tess: &Tessellation,
+    x: &[DVec3],
+) -> PartRegion {
+    let now = part_region(&forces.potential, tess, x);
+    forces.region_model = forces
+        .potential
+        .two_tone()
+        .or(now.model)
+        .or(forces.region_model);
+    now
+}
+
+/// Why a part measured `now`, placed as `placed`, must stop; `None` while it may go on.
+fn outgrown(placed: &PartRegion, now: &PartRegion) -> Option<String> {
+    if 2 * now.on_image < now.area {
+        let share = 100.0 * now.on_image as f64 / now.area as f64;
+        return Some(format!(
+            "left the image ({share:.0}% of its silhouette on it)"
+        ));
+    }
+    (placed.area > 0 && now.area as f64 > MAX_GROWTH * placed.area as f64).then(|| {
+        format!(
+            "grew past {MAX_GROWTH}× its placed area ({} → {} px)",
+            placed.area, now.area
+        )
+    })
 }
 
 /// Steps between the checks of a part's net motion (see [`ImageFitOptions::tolerance`]).
@@ -458,6 +506,13 @@ impl RestCheck {
 }
 
 /// Runs one part from `initial` to rest under `forces`.
+///
+/// The part's region model ([`ImageForces::region_model`]) is the image's own on a two-tone
+/// image ([`ImagePotential::two_tone`]). On a photo it is measured from the part's placement and
+/// again every [`REGION_REFRESH`] steps ([`part_region`]), so the region force compares the
+/// image with the part's own inside and surroundings. A part whose silhouette leaves the image
+/// (less than half of it on the image) or grows past [`MAX_GROWTH`] times its placed area is
+/// stopped there, and [`ImagePartFit::stopped`] says why.
 pub fn fit_part(
     tess: &Tessellation,
     forces: &ImageForces,
@@ -468,6 +523,9 @@ pub fn fit_part(
     let mut x = Vec::new();
     state.node_positions(tess, &mut x);
     let outline_before = outline_potential(&forces.potential, &[(tess, &x)]);
+    let mut forces = forces.clone();
+    let placed = refresh_region_model(&mut forces, tess, &x);
+    let mut stopped = None;
     let mut ws = Workspace::default();
     let mut nf = NodalForces::new(tess.node_count());
     let mut scratch = ImageScratch::default();
@@ -479,7 +537,7 @@ pub fn fit_part(
     };
     let rest = opts.tolerance * forces.potential.frame().extent;
     let (mut steps, mut global_steps, mut converged) = (0, 0, true);
-    for &local in stages {
+    'stages: for &local in stages {
         let mut params = opts.dynamics;
         // Planar: the depth semi-axis a·a2 (the model's y axis lies along world z) is not observed.
         params.free = FreeDofs::with(local, opts.planar, opts.fix_epsilon);
@@ -488,7 +546,6 @@ pub fn fit_part(
         // pulls its outline only to edges that face outwards (`ImageForces::oriented`): that
         // keeps a thin part from settling as a sliver on one edge. The local stage keeps the
         // plain pull: a folding membrane's normals would switch its forces on and off.
-        let mut forces = forces.clone();
         forces.oriented = forces.region > 0.0 && !local;
         let mut rest_check = RestCheck::new(rest);
         while steps < opts.max_steps {
@@ -502,6 +559,14 @@ pub fn fit_part(
             let at = rest_check.after_step(&x, x_new);
             x.clear();
             x.extend_from_slice(x_new);
+            if steps.is_multiple_of(REGION_REFRESH) {
+                let now = refresh_region_model(&mut forces, tess, &x);
+                stopped = outgrown(&placed, &now);
+                if stopped.is_some() {
+                    converged = false;
+                    break 'stages;
+                }
+            }
             if at {
                 at_rest = true;
                 break;
@@ -517,6 +582,7 @@ pub fn fit_part(
         converged,
         outline_before,
         outline_after,
+        stopped,
     })
 }
 
@@ -539,236 +605,4 @@ pub fn fit_image(
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn four_points_on_the_ground_place_the_ellipsoid_they_span() {
-        // Major axis along x (length 4), minor along z (length 1), on the ground y = 0.
-        let pts = [
-            DVec3::new(-2.0, 0.0, 0.0),
-            DVec3::new(2.0, 0.0, 0.0),
-            DVec3::new(0.0, 0.0, -0.5),
-            DVec3::new(0.0, 0.0, 0.5),
-        ];
-        let (c, r, s) = ellipsoid_from_points(pts, DVec3::Y).unwrap();
-        assert!(c.length() < 1e-12);
-        assert!(
-            (r * DVec3::Z - DVec3::X).length() < 1e-12,
-            "model z along the major axis"
-        );
-        assert!(
-            (r * DVec3::Y - DVec3::Y).length() < 1e-12,
-            "model y along the normal"
-        );
-        let semi = s.semi_axes();
-        assert!(
-            (semi - DVec3::new(0.5, 0.5, 2.0)).length() < 1e-12,
-            "{semi:?}"
-        );
-        assert!(ellipsoid_from_points([pts[0]; 4], DVec3::Y).is_none());
-    }
-    use crate::model::forces::image::ImageFrame;
-
-    /// A dark filled ellipse on a white background.
-    fn ellipse_image(w: usize, h: usize, c: DVec2, a: f64, b: f64, angle: f64) -> Vec<f64> {
-        let (s, co) = angle.sin_cos();
-        (0..w * h)
-            .map(|i| {
-                let d = DVec2::new((i % w) as f64, (i / w) as f64) - c;
-                let (u, v) = (co * d.x + s * d.y, -s * d.x + co * d.y);
-                if (u / a).powi(2) + (v / b).powi(2) <= 1.0 {
-                    0.1
-                } else {
-                    0.9
-                }
-            })
-            .collect()
-    }
-
-    fn potential(lum: Vec<f64>, w: usize, h: usize) -> Arc<ImagePotential> {
-        Arc::new(ImagePotential::new(w, h, lum, 2.0, ImageFrame::default()).unwrap())
-    }
-
-    #[test]
-    fn blobs_of_a_dark_ellipse_give_its_centre_and_axes() {
-        let (w, h) = (200, 160);
-        let c = DVec2::new(90.0, 70.0);
-        let lum = ellipse_image(w, h, c, 60.0, 25.0, 0.5);
-        let pot = potential(lum, w, h);
-        let blobs = segment(&pot, 20);
-        assert_eq!(blobs.len(), 1);
-        let axes = PartAxes::from_blob(&pot, &blobs[0]).unwrap();
-        assert!((pot.to_pixel(axes.center) - c).length() < 0.5);
-        let major_px = axes.major.length() / pot.pitch();
-        assert!((major_px - 60.0).abs() < 1.0, "{major_px}");
-        assert!((axes.minor / pot.pitch() - 25.0).abs() < 1.0);
-        // Rows grow downwards, so a positive image angle is clockwise in the plane.
-        let angle = axes.major.y.atan2(axes.major.x);
-        let expected = -0.5;
-        let diff = (angle - expected).rem_euclid(std::f64::consts::PI);
-        assert!(diff.min(std::f64::consts::PI - diff) < 0.02, "{angle}");
-    }
-
-    #[test]
-    fn four_points_place_a_part_and_outside_points_are_refused() {
-        let (w, h) = (100, 80);
-        let pot = potential(vec![0.5; w * h], w, h);
-        let px = [
-            DVec2::new(20.0, 40.0),
-            DVec2::new(80.0, 40.0),
-            DVec2::new(50.0, 30.0),
-            DVec2::new(50.0, 50.0),
-        ];
-        let axes = PartAxes::from_points(&pot, px).unwrap();
-        assert!((pot.to_pixel(axes.center) - DVec2::new(50.0, 40.0)).length() < 1e-9);
-        assert!((axes.major.length() - 0.3).abs() < 1e-12);
-        assert!((axes.minor - 0.1).abs() < 1e-12);
-        let (c, r, s) = axes.pose();
-        // The model's z axis lies along the major axis; its semi-axes are 0.3 and 0.1.
-        assert!(
-            (r * DVec3::Z - DVec3::X).length() < 1e-12
-                || (r * DVec3::Z + DVec3::X).length() < 1e-12
-        );
-        assert!((s.a * s.a3 - 0.3).abs() < 1e-12 && (s.a * s.a1 - 0.1).abs() < 1e-12);
-        assert_eq!(c.z, 0.0);
-        let outside = px.map(|p| p + DVec2::new(500.0, 0.0));
-        assert!(matches!(
-            PartAxes::from_points(&pot, outside),
-            Err(PlacementError::OutsideImage { .. })
-        ));
-        let flat = [px[0], px[0], px[2], px[3]];
-        assert_eq!(
-            PartAxes::from_points(&pot, flat),
-            Err(PlacementError::DegenerateAxis)
-        );
-    }
-
-    #[test]
-    fn a_part_fitted_to_an_ellipse_image_puts_its_outline_on_the_edge() {
-        let (w, h) = (160, 160);
-        let c = DVec2::new(80.0, 80.0);
-        let lum = ellipse_image(w, h, c, 50.0, 22.0, 0.3);
-        let pot = potential(lum, w, h);
-        // A crude start: centre off by 6 px, axes 20 % off, rotated by 0.2 rad.
-        let start = PartAxes {
-            center: pot.to_plane(c + DVec2::new(6.0, -4.0)),
-            major: DVec2::from_angle(-0.1) * 40.0 * pot.pitch(),
-            minor: 26.0 * pot.pitch(),
-        };
-        let opts = ImageFitOptions {
-            k: 16,
-            ..Default::default()
-        };
-        let fits = fit_image(pot.clone(), &[start], &opts).unwrap();
-        let f = &fits[0];
-        assert!(f.state.is_finite());
-        assert!(
-            f.outline_after > 0.8 && f.outline_after > f.outline_before + 0.2,
-            "outline P/P_ref {} -> {}",
-            f.outline_before,
-            f.outline_after
-        );
-        let tess = Tessellation::new(16);
-        let mut x0 = Vec::new();
-        start.state(&tess).node_positions(&tess, &mut x0);
-        let mut x1 = Vec::new();
-        f.state.node_positions(&tess, &mut x1);
-        let (before, after) = (
-            silhouette_iou(&pot, &[(&tess, &x0)]),
-            silhouette_iou(&pot, &[(&tess, &x1)]),
-        );
-        assert!(
-            after > 0.9 && after > before + 0.1,
-            "IoU {before} -> {after}"
-        );
-    }
-
-    #[test]
-    fn without_the_local_stage_a_part_stays_a_superquadric() {
-        let (w, h) = (160, 160);
-        let pot = potential(
-            ellipse_image(w, h, DVec2::new(80.0, 80.0), 50.0, 22.0, 0.3),
-            w,
-            h,
-        );
-        let start = PartAxes {
-            center: pot.to_plane(DVec2::new(86.0, 76.0)),
-            major: DVec2::from_angle(-0.1) * 40.0 * pot.pitch(),
-            minor: 26.0 * pot.pitch(),
-        };
-        let opts = |local| ImageFitOptions {
-            k: 16,
-            local,
-            ..Default::default()
-        };
-        let global = &fit_image(pot.clone(), &[start], &opts(false)).unwrap()[0];
-        assert_eq!(global.steps, global.global_steps);
-        assert!(global.state.displacement.iter().all(|d| *d == DVec3::ZERO));
-        assert!(global.outline_after > global.outline_before + 0.2);
-        let both = &fit_image(pot.clone(), &[start], &opts(true)).unwrap()[0];
-        assert!(both.steps > both.global_steps);
-        assert!(both.state.displacement.iter().any(|d| *d != DVec3::ZERO));
-    }
-
-    #[test]
-    fn a_part_jittering_in_place_is_at_rest_and_one_creeping_is_not() {
-        let rest = 1e-3;
-        let base = vec![DVec3::ZERO; 4];
-        // Each step moves a node by 10 × rest, back and forth, or back and forth with a drift.
-        let at = |step: usize, drift: f64| -> Vec<DVec3> {
-            let mut x = base.clone();
-            x[2].x = if step.is_multiple_of(2) {
-                0.0
-            } else {
-                10.0 * rest
-            } + drift * step as f64;
-            x
-        };
-        for (drift, expected) in [(0.0, Some(2 * REST_WINDOW)), (0.05 * rest, None)] {
-            let mut check = RestCheck::new(rest);
-            let first = (1..=10 * REST_WINDOW)
-                .find(|&s| check.after_step(&at(s - 1, drift), &at(s, drift)));
-            assert_eq!(first, expected, "drift {drift}");
-        }
-        // A step that moves nothing by more than `rest` is rest at once.
-        assert!(RestCheck::new(rest).after_step(&base, &base));
-    }
-
-    #[test]
-    fn a_part_placed_across_one_edge_of_a_bar_fills_the_bar_instead_of_flattening_onto_the_edge() {
-        // A dark vertical bar 24 px wide on white; the part is centred on its left edge, half of
-        // it on the background, as a crude placement of a leg would be. Without oriented edges
-        // in the global stage, both sides of the part settle on that one edge (area 0).
-        let (w, h) = (160, 160);
-        let lum = (0..w * h)
-            .map(|i| {
-                if (72..96).contains(&(i % w)) {
-                    0.1
-                } else {
-                    0.9
-                }
-            })
-            .collect();
-        let pot = potential(lum, w, h);
-        let start = PartAxes {
-            center: pot.to_plane(DVec2::new(72.0, 80.0)),
-            major: DVec2::new(0.0, 40.0 * pot.pitch()),
-            minor: 8.0 * pot.pitch(),
-        };
-        let opts = ImageFitOptions {
-            k: 16,
-            region: 0.1,
-            max_steps: 1500,
-            ..Default::default()
-        };
-        let fit = &fit_image(pot.clone(), &[start], &opts).unwrap()[0];
-        assert!(fit.state.is_finite());
-        let tess = Tessellation::new(16);
-        let mut x = Vec::new();
-        fit.state.node_positions(&tess, &mut x);
-        let s = part_silhouette(&pot, &tess, &x);
-        assert!((s.width - 24.0).abs() < 2.0, "{s:?}");
-        assert!(s.on_foreground > 0.9, "{s:?}");
-    }
-}
+mod tests;

@@ -8,9 +8,11 @@
 //!   foreground.
 //! - [`part_silhouette`]: one part's silhouette on its own: its area and width in pixels and the
 //!   share of it on the foreground, which tell a part that keeps its shape from a sliver.
+//! - [`part_region`]: one part's silhouette and the ring around it: its area on and off the
+//!   image, and its [`RegionModel`].
 
 use super::fem::Tessellation;
-use super::forces::image::{ImagePotential, for_each_outline_edge};
+use super::forces::image::{ImagePotential, RegionModel, for_each_outline_edge};
 use glam::{DVec2, DVec3};
 
 /// The projected outline of a model (see [`for_each_outline_edge`]) as plane segments.
@@ -60,33 +62,169 @@ pub fn silhouette_mask(
 ) -> Vec<bool> {
     let (w, h) = (potential.width(), potential.height());
     let mut mask = vec![false; w * h];
+    let hi = DVec2::new((w - 1) as f64, (h - 1) as f64);
     for (tess, x) in parts {
         for t in tess.triangles() {
             let v = t.map(|i| potential.to_pixel(x[i as usize].truncate()));
-            let lo = v[0].min(v[1]).min(v[2]).ceil().max(DVec2::ZERO);
-            let hi = v[0].max(v[1]).max(v[2]).floor();
-            let area = (v[1] - v[0]).perp_dot(v[2] - v[0]);
-            if area == 0.0 || !area.is_finite() {
-                continue;
-            }
-            let (c1, r1) = (
-                (hi.x.min((w - 1) as f64)) as isize,
-                (hi.y.min((h - 1) as f64)) as isize,
-            );
-            for r in lo.y as isize..=r1 {
-                for c in lo.x as isize..=c1 {
-                    let p = DVec2::new(c as f64, r as f64);
-                    let s0 = (v[1] - v[0]).perp_dot(p - v[0]) / area;
-                    let s1 = (v[2] - v[1]).perp_dot(p - v[1]) / area;
-                    let s2 = (v[0] - v[2]).perp_dot(p - v[2]) / area;
-                    if s0 >= 0.0 && s1 >= 0.0 && s2 >= 0.0 {
-                        mask[r as usize * w + c as usize] = true;
-                    }
-                }
-            }
+            fill_triangle(v, DVec2::ZERO, hi, 1, |c, r| {
+                mask[r as usize * w + c as usize] = true;
+            });
         }
     }
     mask
+}
+
+/// Calls `f(column, row)` for every pixel centre inside the triangle `v` (pixel positions) and
+/// within [lo, hi] whose column and row are multiples of `stride`; nothing for a degenerate or
+/// non-finite triangle.
+fn fill_triangle(
+    v: [DVec2; 3],
+    lo: DVec2,
+    hi: DVec2,
+    stride: usize,
+    mut f: impl FnMut(isize, isize),
+) {
+    let area = (v[1] - v[0]).perp_dot(v[2] - v[0]);
+    if area == 0.0 || !area.is_finite() {
+        return;
+    }
+    let s = stride as f64;
+    let from = (v[0].min(v[1]).min(v[2]).max(lo) / s).ceil() * s;
+    let to = v[0].max(v[1]).max(v[2]).min(hi).floor();
+    for r in (from.y as isize..=to.y as isize).step_by(stride) {
+        for c in (from.x as isize..=to.x as isize).step_by(stride) {
+            let p = DVec2::new(c as f64, r as f64);
+            let s0 = (v[1] - v[0]).perp_dot(p - v[0]) / area;
+            let s1 = (v[2] - v[1]).perp_dot(p - v[1]) / area;
+            let s2 = (v[0] - v[2]).perp_dot(p - v[2]) / area;
+            if s0 >= 0.0 && s1 >= 0.0 && s2 >= 0.0 {
+                f(c, r);
+            }
+        }
+    }
+}
+
+/// One part's silhouette and the ring around it ([`part_region`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PartRegion {
+    /// Pixels inside the silhouette, on the image or off it (off it, counted up to one image
+    /// size beyond each border); sampled, see [`part_region`].
+    pub area: usize,
+    /// Of those, the pixels on the image.
+    pub on_image: usize,
+    /// The part's [`RegionModel::from_samples`] of the luminance inside the silhouette and in
+    /// the ring around it, on the image.
+    pub model: Option<RegionModel>,
+}
+
+/// Samples of a part's spine ([`RegionModel::from_samples`]).
+const SPINE_SAMPLES: usize = 32;
+
+/// Samples taken of a part's region at most (about 128², whatever the part's size): enough for
+/// means to a fraction of a grey level and an area to a percent.
+const REGION_SAMPLES: f64 = 16384.0;
+
+/// The silhouette of one part on `potential`'s pixel grid, and the ring around it: the
+/// silhouette scaled by √2 about the nodes' mean, less the silhouette itself, which makes the
+/// ring as large as the silhouette (the inside and the surroundings weigh the same). The
+/// spine is sampled between the projections of the poles (the tessellation's first and last
+/// nodes).
+///
+/// The pixels are sampled every `s` columns and rows, with `s` the least that keeps the samples
+/// of the ring's bounding box within 16384, and each sample counts for s² pixels of area. Only
+/// triangles that face the camera are filled: on a closed surface they cover the silhouette.
+pub fn part_region(potential: &ImagePotential, tess: &Tessellation, x: &[DVec3]) -> PartRegion {
+    let (w, h) = (potential.width() as isize, potential.height() as isize);
+    let empty = PartRegion {
+        area: 0,
+        on_image: 0,
+        model: None,
+    };
+    if x.len() < 2 {
+        return empty;
+    }
+    let centre = x.iter().map(|p| p.truncate()).sum::<DVec2>() / x.len().max(1) as f64;
+    let ring_scale = std::f64::consts::SQRT_2;
+    let pixel = |p: DVec3| potential.to_pixel(p.truncate());
+    let grown = |p: DVec3| potential.to_pixel(centre + (p.truncate() - centre) * ring_scale);
+    // The pixels either shape covers, clipped to one image size beyond each border.
+    let (mut lo, mut hi) = (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY));
+    for &p in x {
+        for q in [pixel(p), grown(p)] {
+            if q.is_finite() {
+                (lo, hi) = (lo.min(q), hi.max(q));
+            }
+        }
+    }
+    let lo = lo.ceil().max(DVec2::new(-w as f64, -h as f64));
+    let hi = hi
+        .floor()
+        .min(DVec2::new((2 * w - 1) as f64, (2 * h - 1) as f64));
+    if !(lo.x <= hi.x && lo.y <= hi.y) {
+        return empty;
+    }
+    let box_area = (hi.x - lo.x + 1.0) * (hi.y - lo.y + 1.0);
+    let stride = (box_area / REGION_SAMPLES).sqrt().ceil().max(1.0) as usize;
+    let s = stride as f64;
+    // The sample grid: multiples of the stride within [lo, hi].
+    let (lo, hi) = ((lo / s).ceil() * s, (hi / s).floor() * s);
+    if !(lo.x <= hi.x && lo.y <= hi.y) {
+        return empty;
+    }
+    let cols = ((hi.x - lo.x) / s) as usize + 1;
+    let rows = ((hi.y - lo.y) / s) as usize + 1;
+    let (c0, r0) = (lo.x as isize, lo.y as isize);
+    // Bit 1: inside the silhouette; bit 2: inside the grown silhouette.
+    let mut cover = vec![0u8; cols * rows];
+    for t in tess.triangles() {
+        let v = t.map(|i| pixel(x[i as usize]));
+        // Pixel rows run down: a triangle facing the camera (+z) turns clockwise here.
+        if (v[1] - v[0]).perp_dot(v[2] - v[0]) >= 0.0 {
+            continue;
+        }
+        let g = t.map(|i| grown(x[i as usize]));
+        for (bit, v) in [(1u8, v), (2, g)] {
+            fill_triangle(v, lo, hi, stride, |c, r| {
+                let (i, j) = ((c - c0) as usize / stride, (r - r0) as usize / stride);
+                cover[j * cols + i] |= bit;
+            });
+        }
+    }
+    let lum = potential.luminance();
+    let (mut area, mut on_image) = (0, 0);
+    let (mut inside, mut ring) = (Vec::new(), Vec::new());
+    let weight = stride * stride;
+    for (i, &bits) in cover.iter().enumerate().filter(|(_, b)| **b != 0) {
+        let (c, r) = (
+            c0 + ((i % cols) * stride) as isize,
+            r0 + ((i / cols) * stride) as isize,
+        );
+        let is_inside = bits & 1 != 0;
+        area += usize::from(is_inside) * weight;
+        if c < 0 || r < 0 || c >= w || r >= h {
+            continue;
+        }
+        let v = lum[(r * w + c) as usize];
+        if is_inside {
+            on_image += weight;
+            inside.push(v);
+        } else {
+            ring.push(v);
+        }
+    }
+    // The spine: the middle 80 % of the segment between the poles' projections, 32 samples.
+    let (south, north) = (x[0].truncate(), x[x.len() - 1].truncate());
+    let spine: Vec<f64> = (0..SPINE_SAMPLES)
+        .filter_map(|i| {
+            let t = 0.1 + 0.8 * (i as f64 + 0.5) / SPINE_SAMPLES as f64;
+            potential.luminance_at(south.lerp(north, t))
+        })
+        .collect();
+    PartRegion {
+        area,
+        on_image,
+        model: RegionModel::from_samples(&inside, &ring, &spine),
+    }
 }
 
 /// Intersection over union of two masks (1 when both are empty).

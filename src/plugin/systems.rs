@@ -177,10 +177,11 @@ pub fn gather_forces(
         &SimControl,
         &mut Scratch,
         Option<&mut RangeData>,
-        Option<&ImageData>,
+        Option<&mut ImageData>,
         Option<&SpringForces>,
     )>,
 ) {
+    use crate::model::image_fit::{REGION_REFRESH, refresh_region_model};
     models
         .par_iter_mut()
         .for_each(|(model, control, mut scratch, range, image, springs)| {
@@ -198,7 +199,15 @@ pub fn gather_forces(
                     .forces
                     .accumulate(tess, &scratch.node_x, &mut scratch.forces);
             }
-            if let Some(image) = image {
+            if let Some(mut image) = image {
+                // The region force's model of the part, measured as the part moves.
+                let forces = &image.forces;
+                if forces.region > 0.0
+                    && (forces.region_model.is_none()
+                        || control.steps.is_multiple_of(REGION_REFRESH as u64))
+                {
+                    refresh_region_model(&mut image.forces, tess, &scratch.node_x);
+                }
                 image.forces.accumulate_with(
                     tess,
                     &scratch.node_x,

@@ -221,6 +221,9 @@ fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
     }
     let mut all_params = Vec::new();
     for (i, f) in fits.iter().enumerate() {
+        if let Some(why) = &f.stopped {
+            eprintln!("{}: part {} stopped: {why}", path.display(), i + 1);
+        }
         let mut line = image_part_line(&path.display().to_string(), i + 1, f, tess.node_count());
         let sil = part_silhouette(&potential, &tess, &after[i]);
         line["area_px"] = sil.area.into();
@@ -291,6 +294,7 @@ fn image_part_line(file: &str, part: usize, f: &ImagePartFit, nodes: usize) -> s
         "outline_before": f.outline_before, "outline_after": f.outline_after,
         "translation": s.translation.to_array(), "a": s.shape.a, "a1": s.shape.a1,
         "a2": s.shape.a2, "a3": s.shape.a3, "e1": s.shape.e1, "e2": s.shape.e2,
+        "stopped": f.stopped,
     })
 }
 

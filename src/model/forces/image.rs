@@ -30,8 +30,11 @@ use crate::model::fem::Tessellation;
 use glam::{DVec2, DVec3};
 use std::sync::Arc;
 
+mod region;
 #[cfg(test)]
 mod tests;
+
+pub use region::RegionModel;
 
 /// Default half-width of the band |x3| < band of nodes that feel the image (the paper's 0.2).
 pub const DEFAULT_BAND: f64 = 0.2;
@@ -133,9 +136,15 @@ pub struct ImagePotential {
     /// ∇(G_σ ∗ I) at every pixel, per unit length (y up): the direction in which the smoothed
     /// image brightens.
     brightening: Vec<DVec2>,
-    /// +1 when the foreground is the darker side of Otsu's threshold, −1 when it is the brighter.
-    foreground_polarity: f64,
+    /// The foreground's and the background's mean luminance, when the image is two-tone.
+    two_tone: Option<RegionModel>,
 }
+
+/// Otsu's separability η (the share of the luminance's variance between the two classes of
+/// Otsu's threshold) from which an image is two-tone: a silhouette, whose two classes are figure
+/// and ground for every part on it. Drawn silhouettes (the shipped horse) have η ≥ 0.99; the
+/// shipped photos 0.56–0.76.
+pub const TWO_TONE: f64 = 0.9;
 
 /// Normalised 1D Gaussian of width `sigma` pixels, radius ⌈3σ⌉.
 fn gaussian_kernel(sigma: f64) -> Vec<f64> {
@@ -247,7 +256,7 @@ impl ImagePotential {
         let mut sorted = p.clone();
         sorted.sort_by(f64::total_cmp);
         let p_ref = sorted[((sorted.len() - 1) as f64 * 0.99).round() as usize];
-        let (foreground, foreground_bright) = foreground_mask(width, height, &luminance);
+        let (foreground, two_tone) = foreground_mask(width, height, &luminance);
         Ok(Self {
             width,
             height,
@@ -260,7 +269,7 @@ impl ImagePotential {
             p_ref,
             foreground,
             brightening,
-            foreground_polarity: if foreground_bright { -1.0 } else { 1.0 },
+            two_tone,
         })
     }
 
@@ -305,22 +314,29 @@ impl ImagePotential {
         &self.foreground
     }
 
-    /// How well an edge at a located point faces along a part's outward in-plane unit normal
-    /// `n`: the cosine between `n` and the direction from foreground to background across the
-    /// edge (the direction ∇(G_σ ∗ I) brightens in, reversed when the foreground is the brighter
-    /// side), clamped to [0, 1]. 1 where the part's outline would lie with the object inside and
-    /// the background outside; 0 where the part would lie outside the object (a part flattened
-    /// onto one edge has one side of each kind). 0 off the image or where the image is flat.
-    pub fn edge_facing(&self, x: DVec2, n: DVec2) -> f64 {
+    /// How well an edge at a point faces along a part's outward in-plane unit normal `n`: the
+    /// cosine between `n` and the direction from the part's inside to its outside across the
+    /// edge, clamped to [0, 1]. That direction is the one ∇(G_σ ∗ I) brightens in times
+    /// `polarity` ([`RegionModel::polarity`]: +1 for a part darker than its surroundings, −1 for
+    /// a brighter one). 1 where the part's outline would lie with the object inside and the
+    /// background outside; 0 where the part would lie outside the object (a part flattened onto
+    /// one edge has one side of each kind). 0 off the image, where the image is flat, or with
+    /// polarity 0.
+    pub fn edge_facing(&self, x: DVec2, n: DVec2, polarity: f64) -> f64 {
         self.cell(x)
-            .map_or(0.0, |cell| self.edge_facing_in(&cell, n))
+            .map_or(0.0, |cell| self.edge_facing_in(&cell, n, polarity))
     }
 
     /// [`Self::edge_facing`] at a point whose pixel cell has been looked up.
-    fn edge_facing_in(&self, cell: &Cell, n: DVec2) -> f64 {
+    fn edge_facing_in(&self, cell: &Cell, n: DVec2, polarity: f64) -> f64 {
         let g = bilinear(&self.brightening, cell);
-        let dir = (self.foreground_polarity * g).normalize_or_zero();
+        let dir = (polarity * g).normalize_or_zero();
         dir.dot(n).clamp(0.0, 1.0)
+    }
+
+    /// The luminance at a plane point, bilinear between pixels; `None` off the image.
+    pub fn luminance_at(&self, x: DVec2) -> Option<f64> {
+        self.cell(x).map(|cell| bilinear(&self.luminance, &cell))
     }
 
     /// True when the pixel under a plane point is foreground (false off the image).
@@ -333,6 +349,13 @@ impl ImagePotential {
         let c = nearest_index(p.x).min(self.width - 1);
         let r = nearest_index(p.y).min(self.height - 1);
         self.foreground[r * self.width + c]
+    }
+
+    /// The image-wide region model of a two-tone image (Otsu's separability at least
+    /// [`TWO_TONE`]): the foreground's mean luminance inside, the background's outside. `None`
+    /// for a photo, whose parts each measure their own ([`RegionModel::from_samples`]).
+    pub fn two_tone(&self) -> Option<RegionModel> {
+        self.two_tone
     }
 
     /// The 99th percentile of P: the height of a typical strong edge.
@@ -537,14 +560,19 @@ pub struct ImageForces {
     /// nodes on an edge is to flatten the part onto it (a1 → 0). `false` gives the paper's forces.
     pub outline_only: bool,
     /// Region (balloon) force, beyond the paper: every acting node is also pushed along its
-    /// outward in-plane normal when it projects onto the foreground and pulled back when it
-    /// does not, with strength `region` × β P_ref / σ_w (a fraction of a strong edge's pull).
-    /// It settles exactly on the foreground's boundary and keeps a part that straddles a single
-    /// edge from flattening onto it (Cohen's balloon, 1991, with its sign from the foreground).
-    /// 0 gives the paper's forces.
+    /// outward in-plane normal by `region` × β P_ref / σ_w (a fraction of a strong edge's pull)
+    /// times the [`RegionModel::membership`] of the luminance under it: out where the image
+    /// looks like the part's inside, in where it looks like its surroundings, and in off the
+    /// image. It settles on the boundary between the two and keeps a part that straddles a
+    /// single edge from flattening onto it (Cohen's balloon, 1991, with its sign from Chan and
+    /// Vese's region term). 0, or no [`Self::region_model`], gives the paper's forces.
     pub region: f64,
-    /// With the region force on: the outline feels only edges that face its outward normal,
-    /// with the object inside and the background outside ([`ImagePotential::edge_facing`]).
+    /// The part's own intensity model, which signs the region force and orients the edges;
+    /// [`crate::model::image_fit::fit_part`] measures it from the part's placement and keeps it
+    /// up to date as the part moves.
+    pub region_model: Option<RegionModel>,
+    /// With a region model: the outline feels only edges that face its outward normal, with
+    /// the part's inside within and its surroundings without ([`ImagePotential::edge_facing`]).
     /// Without it, both sides of a thin part can settle on one edge (a sliver).
     pub oriented: bool,
 }
@@ -558,6 +586,7 @@ impl ImageForces {
             band: DEFAULT_BAND,
             outline_only: true,
             region: 0.0,
+            region_model: None,
             oriented: false,
         }
     }
@@ -621,11 +650,21 @@ impl ImageForces {
             normals,
         } = scratch;
         self.acting_nodes_with(tess, node_x, acting, facing);
-        let push = (self.region > 0.0).then(|| {
-            let sigma_w = self.potential.sigma() * self.potential.pitch();
-            self.region * self.beta * self.potential.p_ref() / sigma_w
-        });
-        let needs_normals = push.is_some() || self.oriented;
+        let push = self
+            .region_model
+            .filter(|_| self.region > 0.0)
+            .map(|model| {
+                let sigma_w = self.potential.sigma() * self.potential.pitch();
+                (
+                    self.region * self.beta * self.potential.p_ref() / sigma_w,
+                    model,
+                )
+            });
+        let polarity = self
+            .region_model
+            .filter(|_| self.oriented)
+            .map(|m| m.polarity());
+        let needs_normals = push.is_some() || polarity.is_some();
         let one_pass = needs_normals
             && normals_in_one_pass(acting.iter().filter(|&&a| a).count(), node_x.len());
         if one_pass {
@@ -644,23 +683,21 @@ impl ImageForces {
             } else {
                 tess.vertex_normal(node_x, i).truncate().normalize_or_zero()
             };
-            if let Some(push) = push
-                && n != DVec2::ZERO
-            {
-                let sign = if at.is_some_and(|p| self.potential.foreground_at(p)) {
-                    1.0
-                } else {
-                    -1.0
-                };
-                out.force[i] += (sign * push * a * n).extend(0.0);
-            }
             // One lookup of the pixel cell for every value sampled there.
             let cell = at.map(|p| self.potential.cell_at(p));
+            if let Some((push, model)) = push
+                && n != DVec2::ZERO
+            {
+                let sign = cell.as_ref().map_or(-1.0, |cell| {
+                    model.membership(bilinear(&self.potential.luminance, cell))
+                });
+                out.force[i] += (sign * push * a * n).extend(0.0);
+            }
             // An oriented outline feels only the edges that face its outward normal.
-            let facing = match (&cell, self.oriented) {
-                (_, false) => 1.0,
-                (Some(cell), true) => self.potential.edge_facing_in(cell, n),
-                (None, true) => 0.0,
+            let facing = match (&cell, polarity) {
+                (_, None) => 1.0,
+                (Some(cell), Some(polarity)) => self.potential.edge_facing_in(cell, n, polarity),
+                (None, Some(_)) => 0.0,
             };
             let (g, p) = cell.as_ref().map_or((DVec2::ZERO, 0.0), |cell| {
                 self.potential.gradient_and_potential_in(cell)
@@ -715,9 +752,8 @@ pub fn otsu_threshold(luminance: &[f64]) -> f64 {
     (best_t as f64 + 0.5) / 255.0
 }
 
-/// See [`ImagePotential::foreground`].
-/// Also returns true when the foreground is the brighter side.
-fn foreground_mask(w: usize, h: usize, lum: &[f64]) -> (Vec<bool>, bool) {
+/// See [`ImagePotential::foreground`], and [`ImagePotential::two_tone`].
+fn foreground_mask(w: usize, h: usize, lum: &[f64]) -> (Vec<bool>, Option<RegionModel>) {
     let t = otsu_threshold(lum);
     let (mut bright, mut border) = (0usize, 0usize);
     for row in 0..h {
@@ -729,8 +765,25 @@ fn foreground_mask(w: usize, h: usize, lum: &[f64]) -> (Vec<bool>, bool) {
         }
     }
     let foreground_bright = 2 * bright < border;
-    let mask = lum.iter().map(|&v| (v > t) == foreground_bright).collect();
-    (mask, foreground_bright)
+    let mask: Vec<bool> = lum.iter().map(|&v| (v > t) == foreground_bright).collect();
+    let (mut sums, mut counts) = ([0.0; 2], [0usize; 2]);
+    for (&v, &f) in lum.iter().zip(&mask) {
+        sums[usize::from(f)] += v;
+        counts[usize::from(f)] += 1;
+    }
+    let n = lum.len() as f64;
+    let mean = lum.iter().sum::<f64>() / n;
+    let total = lum.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    let two_tone = (!counts.contains(&0)).then(|| {
+        let [ground, figure] = [0, 1].map(|c| sums[c] / counts[c] as f64);
+        let (w0, w1) = (counts[0] as f64 / n, counts[1] as f64 / n);
+        let between = w0 * w1 * (figure - ground).powi(2);
+        (between >= TWO_TONE * total).then_some(RegionModel {
+            inside: figure,
+            outside: ground,
+        })
+    });
+    (mask, two_tone.flatten())
 }
 
 /// Converts 8-bit or float image data to luminance in [0, 1] (Rec. 709 weights on RGB).

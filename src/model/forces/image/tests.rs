@@ -287,14 +287,31 @@ fn forces_with_kept_buffers_equal_the_forces_from_every_nodes_normals_to_the_bit
     let mut scratch = ImageScratch::default();
     // How many cases took the node-by-node normals and the one-pass normals.
     let mut paths = [0; 2];
-    for (k, outline_only, region) in [(20, true, 0.05), (9, true, 0.05), (12, false, 0.2)] {
+    // The disc's own grey levels, as the part would measure them, and a model that puts the
+    // boundary off the disc's edge, so that the region force's sign varies between nodes.
+    let models = [
+        RegionModel {
+            inside: 0.9,
+            outside: 0.1,
+        },
+        RegionModel {
+            inside: 0.7,
+            outside: 0.3,
+        },
+    ];
+    for (k, outline_only, region, model, oriented) in [
+        (20, true, 0.05, models[0], false),
+        (9, true, 0.05, models[1], false),
+        (12, false, 0.2, models[0], true),
+    ] {
         let forces = ImageForces {
             potential: potential.clone(),
             beta: 1.5,
             band: 0.3,
             outline_only,
             region,
-            oriented: false,
+            region_model: Some(model),
+            oriented,
         };
         let tess = Tessellation::new(k);
         let state = ModelState::new(
@@ -320,9 +337,13 @@ fn forces_with_kept_buffers_equal_the_forces_from_every_nodes_normals_to_the_bit
         for (i, &xi) in x.iter().enumerate() {
             let n = normals[i].truncate().normalize_or_zero();
             if acting[i] && n != DVec2::ZERO {
-                let inside = potential.in_foreground(xi.truncate());
-                (pushed, pulled) = (pushed + usize::from(inside), pulled + usize::from(!inside));
-                let sign = if inside { 1.0 } else { -1.0 };
+                let sign = potential
+                    .luminance_at(xi.truncate())
+                    .map_or(-1.0, |lum| model.membership(lum));
+                (pushed, pulled) = (
+                    pushed + usize::from(sign > 0.0),
+                    pulled + usize::from(sign < 0.0),
+                );
                 reference.force[i] += (sign * push * tess.node_area[i] * n).extend(0.0);
             }
         }
@@ -331,7 +352,12 @@ fn forces_with_kept_buffers_equal_the_forces_from_every_nodes_normals_to_the_bit
             let (g, p) = potential.gradient_and_potential_at(xi.truncate());
             let a = tess.node_area[i];
             let near_edge = (p / potential.p_ref()).clamp(0.0, 1.0);
-            reference.force[i] += forces.beta * a * DVec3::new(g.x, g.y, 0.0);
+            let n = normals[i].truncate().normalize_or_zero();
+            let facing = match oriented {
+                true => potential.edge_facing(xi.truncate(), n, model.polarity()),
+                false => 1.0,
+            };
+            reference.force[i] += facing * forces.beta * a * DVec3::new(g.x, g.y, 0.0);
             reference.stiffness[i] += kappa * a * (FLAT_WEIGHT + (1.0 - FLAT_WEIGHT) * near_edge);
         }
         assert!(
@@ -366,6 +392,7 @@ fn forces_act_in_the_band_parallel_to_the_plane_and_follow_the_energy() {
         band: 0.05,
         outline_only: false,
         region: 0.0,
+        region_model: None,
         oriented: false,
     };
     let tess = Tessellation::new(12);
@@ -430,24 +457,30 @@ fn forces_act_in_the_band_parallel_to_the_plane_and_follow_the_energy() {
 }
 
 #[test]
-fn edges_face_out_of_the_foreground_whichever_side_is_brighter() {
-    // A bright disc on dark (the disc is the foreground) and its negative, a dark disc on bright.
+fn edges_face_out_of_the_part_whichever_side_is_brighter() {
+    // A bright disc on dark (the disc is the part's inside) and its negative, a dark disc on
+    // bright; the polarity is the part's region model's.
     let (w, h, r) = (80, 80, 20.0);
-    for lum in [
-        disc(w, h, r),
-        disc(w, h, r).iter().map(|v| 1.0 - v).collect(),
+    for (lum, model) in [
+        (disc(w, h, r), (0.9, 0.1)),
+        (disc(w, h, r).iter().map(|v| 1.0 - v).collect(), (0.1, 0.9)),
     ] {
+        let polarity = RegionModel {
+            inside: model.0,
+            outside: model.1,
+        }
+        .polarity();
         let p = ImagePotential::new(w, h, lum, 2.0, ImageFrame::default()).unwrap();
         let centre = DVec2::new(40.0, 40.0);
         for angle in [0.0, 1.0, 2.5, 4.0] {
             let out = DVec2::from_angle(angle);
             // On the rim, in plane coordinates (y up: the pixel row is flipped).
             let rim = p.to_plane(centre + DVec2::new(out.x, -out.y) * r);
-            let facing_out = p.edge_facing(rim, out);
+            let facing_out = p.edge_facing(rim, out, polarity);
             assert!(facing_out > 0.95, "angle {angle}: {facing_out}");
-            assert_eq!(p.edge_facing(rim, -out), 0.0, "angle {angle}");
+            assert_eq!(p.edge_facing(rim, -out, polarity), 0.0, "angle {angle}");
             // Across the edge's direction: half-way.
-            let across = p.edge_facing(rim, (out + out.perp()).normalize());
+            let across = p.edge_facing(rim, (out + out.perp()).normalize(), polarity);
             assert!(
                 (across - 0.5f64.sqrt()).abs() < 0.05,
                 "angle {angle}: {across}"
@@ -455,9 +488,14 @@ fn edges_face_out_of_the_foreground_whichever_side_is_brighter() {
         }
         // Flat image far from the edge, and off the image: no edge to face.
         assert_eq!(
-            p.edge_facing(p.to_plane(DVec2::new(2.0, 2.0)), DVec2::X),
+            p.edge_facing(p.to_plane(DVec2::new(2.0, 2.0)), DVec2::X, polarity),
             0.0
         );
-        assert_eq!(p.edge_facing(DVec2::new(9.0, 9.0), DVec2::X), 0.0);
+        assert_eq!(p.edge_facing(DVec2::new(9.0, 9.0), DVec2::X, polarity), 0.0);
+        // Without a polarity, no edge faces anywhere.
+        assert_eq!(
+            p.edge_facing(p.to_plane(DVec2::new(60.0, 40.0)), DVec2::X, 0.0),
+            0.0
+        );
     }
 }
