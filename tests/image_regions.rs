@@ -161,3 +161,71 @@ fn a_part_placed_on_the_desk_itself_is_stopped_and_says_why() {
     );
     assert!(fit.steps < opts.max_steps, "{} steps", fit.steps);
 }
+
+/// A dark box (a rectangle, half-sizes 30 × 14 px) on the desk below the tube and the can.
+fn box_on_desk() -> Vec<f64> {
+    let mut lum = desk();
+    for r in 0..H {
+        for c in 0..W {
+            if in_box(c, r) {
+                lum[r * W + c] = 0.25;
+            }
+        }
+    }
+    lum
+}
+
+fn in_box(c: usize, r: usize) -> bool {
+    (c as f64 - 110.0).abs() <= 30.0 && (r as f64 - 140.0).abs() <= 14.0
+}
+
+#[test]
+fn a_box_is_fitted_as_a_box_unless_its_squareness_is_held() {
+    let p = Arc::new(ImagePotential::new(W, H, box_on_desk(), 2.0, ImageFrame::default()).unwrap());
+    let truth: Vec<bool> = (0..W * H).map(|i| in_box(i % W, i / W)).collect();
+    // Clicks a little off the box's axes, 85 % of the way to its sides.
+    assert_eq!(p.two_tone(), None);
+    let (c, off) = (DVec2::new(110.0, 140.0), DVec2::new(2.0, -1.0));
+    let axes = PartAxes::from_points(
+        &p,
+        [
+            c + off + DVec2::new(-25.5, 0.0),
+            c + off + DVec2::new(25.5, 0.0),
+            c + off + DVec2::new(0.0, -11.9),
+            c + off + DVec2::new(0.0, 11.9),
+        ],
+    )
+    .unwrap();
+    let tess = Tessellation::new(ImageFitOptions::default().k);
+    let fit = |fix_epsilon: bool| {
+        let opts = ImageFitOptions {
+            local: false,
+            region: 0.04,
+            fix_epsilon,
+            ..ImageFitOptions::default()
+        };
+        let f = fit_image(p.clone(), &[axes], &opts).unwrap().remove(0);
+        let mut x = Vec::new();
+        f.state.node_positions(&tess, &mut x);
+        let overlap = iou(&silhouette_mask(&p, &[(&tess, &x)]), &truth);
+        (f, overlap)
+    };
+    let (free, free_iou) = fit(false);
+    let (held, held_iou) = fit(true);
+    assert!(free.state.is_finite() && held.state.is_finite());
+    assert!(
+        free.converged,
+        "ε free: not at rest in {} steps",
+        free.steps
+    );
+    // ε1 shapes the outline (the x–z section); ε2 lies across the view and is held.
+    assert!(free.state.shape.e1 < 0.5, "ε1 = {}", free.state.shape.e1);
+    assert_eq!(free.state.shape.e2, 1.0);
+    assert_eq!((held.state.shape.e1, held.state.shape.e2), (1.0, 1.0));
+    // No ellipse covers a rectangle with IoU above about 0.9; a superquadric can.
+    assert!(free_iou >= 0.95, "IoU with ε free {free_iou:.3}");
+    assert!(
+        free_iou > held_iou + 0.03,
+        "IoU {free_iou:.3} free against {held_iou:.3} held"
+    );
+}

@@ -460,15 +460,14 @@ impl Default for FreeDofs {
 
 impl FreeDofs {
     /// Everything free except: the local DOFs unless `local`; with `planar`, motion in the
-    /// image plane only and the depth ratio a2 held (one image cannot observe it); with
-    /// `fix_epsilon`, ε1 and ε2 held.
+    /// image plane only, and the depth ratio a2 and ε2 held (one image cannot observe them: the
+    /// outline seen along the model's y axis is its x–z section, |x/a1|^(2/ε1) + |z/a3|^(2/ε1)
+    /// = 1, in which neither appears); with `fix_epsilon`, ε1 and ε2 held.
     pub fn with(local: bool, planar: bool, fix_epsilon: bool) -> Self {
         let mut shape = [true; NUM_SHAPE];
         shape[2] = !planar;
-        if fix_epsilon {
-            shape[4] = false;
-            shape[5] = false;
-        }
+        shape[4] = !fix_epsilon;
+        shape[5] = !fix_epsilon && !planar;
         Self {
             shape,
             local,

@@ -274,7 +274,9 @@ pub struct ImageFitOptions {
     /// Move only in the image plane (see [`FreeDofs::planar`]) and hold the depth ratio a2:
     /// what one image cannot observe stays as placed.
     pub planar: bool,
-    /// Hold ε1 = ε2 fixed (the paper does for the pestle and the doll).
+    /// Hold ε1 = ε2 fixed (the paper does for the pestle and the doll); false by default, so that
+    /// a box is fitted as a box. With `planar`, ε2 is held anyway (one image does not observe it,
+    /// see [`FreeDofs::with`]).
     pub fix_epsilon: bool,
     /// Run the global DOFs to rest before freeing the local ones.
     pub global_first: bool,
@@ -289,7 +291,7 @@ pub struct ImageFitOptions {
 }
 
 impl Default for ImageFitOptions {
-    /// The doll experiment: k = 31 (963 nodes), w0 = 1e-3, w1 = 0.1, ε fixed, band 0.2.
+    /// k = 31 (963 nodes), w0 = 1e-3, w1 = 0.1 and band 0.2 (the doll experiment's), ε free.
     fn default() -> Self {
         Self {
             k: 31,
@@ -299,7 +301,7 @@ impl Default for ImageFitOptions {
             outline_only: true,
             region: 0.0,
             planar: true,
-            fix_epsilon: true,
+            fix_epsilon: false,
             global_first: true,
             local: true,
             tolerance: 1e-5,
@@ -326,6 +328,7 @@ impl ImageFitOptions {
     pub fn pestle() -> Self {
         let mut o = Self {
             k: 71,
+            fix_epsilon: true,
             ..Self::default()
         };
         o.dynamics.w0 = 1e-6;
@@ -399,6 +402,7 @@ pub fn doll_experiment() -> ImageExperiment {
             .collect(),
         options: ImageFitOptions {
             region: 0.04,
+            fix_epsilon: true,
             ..ImageFitOptions::default()
         },
     }

@@ -285,9 +285,9 @@ impl PartDef {
         matches!(self.forces, Forces::Image { .. })
     }
 
-    /// Whether ε1, ε2 are held (set, or by default on image parts).
+    /// Whether ε1, ε2 are held (false unless set).
     pub fn fix_epsilon(&self) -> bool {
-        self.free.fix_epsilon.unwrap_or(self.on_image())
+        self.free.fix_epsilon.unwrap_or(false)
     }
 
     /// Whether the part moves in the image plane only (set, or by default on image parts).

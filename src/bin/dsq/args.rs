@@ -165,10 +165,10 @@ pub struct FitArgs {
     /// Let the parts move in depth too.
     #[arg(long, help_heading = "Images")]
     pub free_depth: bool,
-    /// Let the squareness ε1, ε2 move (held at 1 by default, as the paper does for the pestle
-    /// and the doll). Parts can then take a box's outline; on photos some come to rest slowly.
+    /// Hold the squareness ε1 = ε2 = 1, as the paper does for the pestle and the doll: every
+    /// part an ellipsoid.
     #[arg(long, help_heading = "Images")]
-    pub free_epsilon: bool,
+    pub fix_epsilon: bool,
     /// Place a part by four pixel points: both ends of the major axis, then of the minor axis.
     #[arg(long, value_name = "x0,y0,x1,y1,x2,y2,x3,y3", value_parser = part, help_heading = "Images")]
     pub part: Vec<[DVec2; 4]>,
@@ -382,8 +382,8 @@ impl FitArgs {
         if self.free_depth {
             image.options.planar = false;
         }
-        if self.free_epsilon {
-            image.options.fix_epsilon = false;
+        if self.fix_epsilon {
+            image.options.fix_epsilon = true;
         }
         if let Some(region) = self.region {
             image.options.region = region;
