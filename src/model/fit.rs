@@ -32,11 +32,13 @@ use kiddo::SquaredEuclidean;
 use std::f64::consts::SQRT_2;
 use std::num::NonZero;
 
+mod cloud;
 mod options;
 mod plan;
 mod relax;
 mod residuals;
 mod solved;
+pub use cloud::*;
 pub use options::*;
 pub use plan::*;
 use relax::*;

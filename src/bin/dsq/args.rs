@@ -3,9 +3,10 @@
 //! Where options overlap, the order is fixed, whatever the order on the command line: a
 //! `--paper` experiment's settings first, then `--robust`, then every option given by itself.
 
-use bevy_deformable_sq::model::fit::{FitOptions, Solver};
+use bevy_deformable_sq::model::fit::{
+    CloudOptions, CloudPlan, FitOptions, Solver, Stiffness, k_for_nodes,
+};
 use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
-use bevy_deformable_sq::model::forces::range::InfluenceMode;
 use bevy_deformable_sq::model::image_fit::{ImageFitOptions, doll_experiment, pestle_experiment};
 use bevy_deformable_sq::synthetic;
 use clap::{Args as ClapArgs, ValueEnum};
@@ -56,9 +57,10 @@ instead; --solver dynamics runs the paper's explicit dynamics. Progress goes to 
 exits with code 2 and a one-line message."
 )]
 pub struct FitArgs {
-    /// The point cloud: an OBJ (its vertices are the points) or PLY file.
+    /// The point cloud: an OBJ (its vertices are the points) or PLY file. Give several to fit
+    /// them side by side over every core: a JSON line per file, in the order given.
     #[arg(value_name = "POINTS")]
-    pub points: Option<PathBuf>,
+    pub points: Vec<PathBuf>,
     /// Fit the parts of an image (PNG or JPEG) instead.
     #[arg(long, value_name = "IMAGE")]
     pub image: Option<PathBuf>,
@@ -94,6 +96,10 @@ pub struct FitArgs {
     /// Write the fitted parameters (JSON).
     #[arg(long, value_name = "FILE.json", help_heading = "Output")]
     pub out_params: Option<PathBuf>,
+    /// Write each cloud's mesh and parameters into DIR (created if missing) as STEM.obj and
+    /// STEM.json, STEM being the file's name without its extension.
+    #[arg(long, value_name = "DIR", help_heading = "Output")]
+    pub out_dir: Option<PathBuf>,
     /// No progress lines on stderr.
     #[arg(long, help_heading = "Output")]
     pub quiet: bool,
@@ -240,6 +246,8 @@ fn part(v: &str) -> Result<[DVec2; 4], String> {
 pub enum Source {
     /// A point file.
     File(PathBuf),
+    /// Point files fitted side by side (several, or any with `--out-dir`).
+    Files(Vec<PathBuf>),
     /// The paper's egg or mug range experiment.
     Paper(&'static str),
     /// An image, its parts placed by `--part` or found as blobs.
@@ -266,14 +274,16 @@ pub struct ImageArgs {
 pub struct Args {
     /// The data.
     pub source: Source,
-    /// The range fit's options.
-    pub options: FitOptions,
+    /// The range fit's settings.
+    pub plan: CloudPlan,
     /// The image fit's settings (`auto_parts` is also `--parts` for clouds).
     pub image: ImageArgs,
     /// `--out-mesh`.
     pub out_mesh: Option<PathBuf>,
     /// `--out-params`.
     pub out_params: Option<PathBuf>,
+    /// `--out-dir`.
+    pub out_dir: Option<PathBuf>,
     /// `--quiet`.
     pub quiet: bool,
     /// `--app`.
@@ -282,10 +292,6 @@ pub struct Args {
     pub out_scene: Option<PathBuf>,
     /// `--max-steps` as given (a scene caps each part with it).
     pub max_steps_override: Option<u32>,
-    /// w0 and w1 from the noise the points show (`--w1 auto`, or the default for POINTS).
-    pub stiffness_from_noise: bool,
-    /// `--w1 auto` was given: an estimate that cannot be made is an error.
-    pub stiffness_asked: bool,
 }
 
 impl FitArgs {
@@ -330,41 +336,23 @@ impl FitArgs {
             }
             None => {}
         }
-        if self.robust {
-            o = o.robust();
-        }
-        if let Some(n) = self.nodes {
-            let k = (n.saturating_sub(2) as f64).sqrt().round() as usize;
-            if k < 3 || k * k + 2 != n {
-                return Err(format!(
-                    "--nodes {n}: a node count is k² + 2 with k ≥ 3 (e.g. 963, 1683, 2603, 5043); nearest is {}",
-                    k.max(3) * k.max(3) + 2
-                ));
-            }
-            o.k = k;
+        let k = match (self.nodes, self.k) {
+            (Some(n), _) => Some(k_for_nodes(n)?),
+            (None, k) => k.map(|k| k as usize),
+        };
+        if let Some(k) = k {
             image.options.k = k;
         }
-        if let Some(k) = self.k {
-            o.k = k as usize;
-            image.options.k = k as usize;
-        }
         if let Some(w0) = self.w0 {
-            o.dynamics.w0 = w0;
             image.options.dynamics.w0 = w0;
         }
-        let (mut stiffness_from_noise, stiffness_asked) =
-            (self.w1 == Some(W1::Auto), self.w1 == Some(W1::Auto));
         if let Some(W1::Value(w1)) = self.w1 {
-            o.dynamics.w1 = w1;
             image.options.dynamics.w1 = w1;
         }
-        let stiffness_given = self.w0.is_some() || matches!(self.w1, Some(W1::Value(_)));
         if let Some(beta) = self.beta {
-            o.beta = beta;
             image.options.beta = beta;
         }
         if let Some(max_steps) = self.max_steps {
-            o.max_steps = max_steps;
             image.options.max_steps = max_steps as usize;
         }
         if let Some(sigma) = self.sigma {
@@ -394,59 +382,65 @@ impl FitArgs {
         if !self.part.is_empty() {
             image.parts = self.part;
         }
-        if let Some(n) = self.reassign {
-            o.reassign_every = n.max(1);
-        }
-        o.global_only |= self.global_only;
-        o.dynamics.free.taper |= self.taper;
-        o.dynamics.free.bend |= self.bend;
-        o.point_to_plane |= self.plane;
-        o.switch_cross_section |= self.switch;
-        o.similarity_switch |= self.similar;
-        if let Some(f) = self.outliers {
-            o.outlier_ratio = f;
-        }
-        if self.migrate {
-            o.influence = InfluenceMode::Migrating { rate: 0.5 };
-        }
-        if let Some(gamma) = self.implicit_local {
-            o.dynamics.implicit_local = true;
-            o.dynamics.gamma_local = gamma;
-        }
-        let source = match (self.points, paper.as_ref(), image_path, self.scene) {
-            (Some(p), None, None, None) => Source::File(p),
-            (None, Some((name, _)), None, None) => Source::Paper(name),
-            (None, None, Some(p), None) => Source::Image(p),
-            (None, None, None, Some(p)) => Source::Scene(p),
-            (None, None, None, None) => {
+        let cloud = CloudOptions {
+            global_only: self.global_only,
+            solver: self.solver.map(|s| match s {
+                SolverArg::Solved => Solver::Solved,
+                SolverArg::Dynamics => Solver::Dynamics,
+            }),
+            paper_forces: self.paper_forces,
+            robust: self.robust,
+            plane: self.plane,
+            switch: self.switch,
+            similar: self.similar,
+            migrate: self.migrate,
+            taper: self.taper,
+            bend: self.bend,
+            outliers: self.outliers,
+            k,
+            w0: self.w0,
+            w1: self.w1.map(|w| match w {
+                W1::Auto => Stiffness::FromNoise,
+                W1::Value(v) => Stiffness::Value(v),
+            }),
+            beta: self.beta,
+            max_steps: self.max_steps,
+            reassign: self.reassign,
+            implicit_local: self.implicit_local,
+        };
+        let mut points = self.points;
+        let source = match (points.len(), paper.as_ref(), image_path, self.scene) {
+            (1, None, None, None) if self.out_dir.is_none() => Source::File(points.remove(0)),
+            (1.., None, None, None) => Source::Files(points),
+            (0, Some((name, _)), None, None) => Source::Paper(name),
+            (0, None, Some(p), None) => Source::Image(p),
+            (0, None, None, Some(p)) => Source::Scene(p),
+            (0, None, None, None) => {
                 return Err("no POINTS file given (dsq fit --help lists the inputs)".into());
             }
             _ => return Err("give one of POINTS, --paper, --image or --scene".into()),
         };
-        let is_file = matches!(source, Source::File(_));
-        if is_file && !self.paper_forces {
-            // The defaults for a user's cloud (docs/cli.md): outlier-robust weights,
-            // point-to-plane springs in the global stage and the membrane's stiffness from the
-            // noise; a pure superquadric also gets the refining stage and the cross-section
-            // switch.
-            let given = o;
-            o = o.for_data();
-            if self.outliers.is_some() {
-                o.outlier_ratio = given.outlier_ratio;
+        if matches!(source, Source::Files(_)) {
+            if self.out_mesh.is_some() || self.out_params.is_some() {
+                return Err(
+                    "--out-mesh and --out-params write one fit; with several POINTS files give --out-dir"
+                        .into(),
+                );
             }
-            // A tessellation given is kept for every stage.
-            o.k_from_data &= self.k.is_none() && self.nodes.is_none();
-            // (w0 and w1 act on the local DOFs only.)
-            stiffness_from_noise |= !stiffness_given && !o.global_only;
-        }
-        match self.solver {
-            Some(_) if !is_file => {
-                return Err("--solver acts on POINTS fits".into());
+            if self.app {
+                return Err("--app fits one POINTS file at a time".into());
             }
-            Some(SolverArg::Solved) => o.solver = Solver::Solved,
-            Some(SolverArg::Dynamics) => o.solver = Solver::Dynamics,
-            None => {}
+            if image.auto_parts > 1 {
+                return Err("--parts splits one POINTS file at a time".into());
+            }
+        } else if self.out_dir.is_some() {
+            return Err("--out-dir acts on POINTS files".into());
         }
+        let is_file = matches!(source, Source::File(_) | Source::Files(_));
+        if self.solver.is_some() && !is_file {
+            return Err("--solver acts on POINTS fits".into());
+        }
+        let plan = cloud.resolve(o, is_file).map_err(|e| e.to_string())?;
         if self.paper_forces && !is_file {
             return Err(
                 "--paper-forces acts on POINTS fits (--paper, --image and --scene keep their own settings)"
@@ -462,7 +456,7 @@ impl FitArgs {
                     .into(),
             );
         }
-        if stiffness_from_noise && matches!(source, Source::Image(_) | Source::Scene(_)) {
+        if plan.stiffness_from_noise && matches!(source, Source::Image(_) | Source::Scene(_)) {
             return Err(
                 "--w1 auto reads the noise of a point cloud; give w1 a number for images and scenes"
                     .into(),
@@ -476,16 +470,15 @@ impl FitArgs {
         }
         let args = Args {
             source,
-            options: o,
+            plan,
             image,
             out_mesh: self.out_mesh,
             out_params: self.out_params,
+            out_dir: self.out_dir,
             quiet: self.quiet,
             app: self.app,
             out_scene: self.out_scene,
             max_steps_override: self.max_steps,
-            stiffness_from_noise,
-            stiffness_asked,
         };
         Ok((args, paper.map(|(_, pts)| pts)))
     }

@@ -8,8 +8,8 @@ use bevy_deformable_sq::io::{
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{
-    FitError, FitOptions, FitReport, Residuals, Solver, Stage, bounding_diagonal, fit,
-    point_distances,
+    FitError, FitOptions, FitReport, Residuals, Solver, Stage, bounding_diagonal, cloud_options,
+    fit, point_distances,
 };
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::image_fit::{
@@ -38,100 +38,110 @@ fn fit_through_app(_: &[DVec3], _: &FitOptions) -> Result<FitReport, FitError> {
 /// Runs the fit `args` describes (`paper_points`: the data of `--paper egg|mug`) and prints its
 /// JSON lines.
 pub fn run(args: Args, paper_points: Option<Vec<DVec3>>) -> Result<(), String> {
-    match &args.source {
-        Source::Image(path) => return run_image(path, &args),
-        Source::Scene(path) => return run_scene_file(path, &args),
-        _ => {}
-    }
     let (points, name) = match (&args.source, paper_points) {
+        (Source::Image(path), _) => return run_image(path, &args),
+        (Source::Scene(path), _) => return run_scene_file(path, &args),
+        (Source::Files(files), _) => return crate::batch::run(files, &args),
         (Source::File(path), _) => (
             load_points(path).map_err(|e| e.to_string())?,
             path.display().to_string(),
         ),
         (Source::Paper(name), Some(pts)) => (pts, format!("paper:{name}")),
         (Source::Paper(name), None) => return Err(format!("no data for --paper {name}")),
-        (Source::Image(_) | Source::Scene(_), _) => unreachable!("returned above"),
     };
-    // The wall time includes the noise estimate.
-    let start = Instant::now();
-    // `--w1 auto`: the stiffness from the noise of the whole cloud.
-    let (options, noise) = if args.stiffness_from_noise {
-        let (o, noise) = args.options.with_stiffness_from_noise(&points);
-        // Asked for, the estimate must be made; as a default, too few points keep the paper's
-        // stiffness (and the fit itself says what is wrong with the cloud, if anything).
-        if noise.is_none() && args.stiffness_asked {
-            return Err(format!("{name}: too few points to estimate the noise"));
-        }
-        (o, noise)
-    } else {
-        (args.options, None)
-    };
-    let args = Args { options, ..args };
     if args.image.auto_parts > 1 {
-        return run_parts(&points, &name, &args);
+        let (options, _) =
+            cloud_options(&points, &args.plan).map_err(|e| format!("{name}: {e}"))?;
+        return run_parts(&points, &name, &options, &args);
     }
-    let quiet = args.quiet;
-    let mut last_print = Instant::now();
-    let report = if args.app {
-        fit_through_app(&points, &args.options)
-    } else {
-        fit(&points, &args.options, |p| {
-        if !quiet && (last_print.elapsed().as_millis() >= 500 || p.step.is_multiple_of(1000)) {
-            last_print = Instant::now();
-            let stage = match p.stage {
-                Stage::Cover => "placing",
-                Stage::Global => "global",
-                Stage::Joint => "global+local",
-            };
-            let rate = p.step as f64 / start.elapsed().as_secs_f64().max(1e-9);
-            eprintln!(
-                "step {:>6}  {stage:<12}  motion {:.2e}  energy {:.4e}  reattached {:>3}x  {:.0} steps/s",
-                p.step, p.max_motion, p.energy, p.reassignments, rate
-            );
-        }
-        })
-    }
-    .map_err(|e| format!("{name}: {e}"))?;
-    let wall = start.elapsed();
+    let (summary, report) = fit_points(&points, &name, &args, !args.quiet)?;
     if let Some(path) = &args.out_mesh {
         write_model_obj(path, &report.tess, &report.state).map_err(|e| e.to_string())?;
     }
-    let params = FittedParams::from_report(&report);
     if let Some(path) = &args.out_params {
-        let json = serde_json::to_string_pretty(&params).map_err(|e| e.to_string())?;
-        std::fs::write(path, json).map_err(|e| format!("{}: cannot write: {e}", path.display()))?;
-    }
-    let through = if args.app { "plugin" } else { "core" };
-    let mut summary = range_summary(
-        &name,
-        &report,
-        points.len(),
-        wall,
-        through,
-        args.options.global_only,
-    );
-    if let Some(noise) = noise {
-        summary["noise"] = noise.relative.into();
-        summary["w0"] = args.options.dynamics.w0.into();
-        summary["w1"] = args.options.dynamics.w1.into();
+        write_params(path, &report)?;
     }
     println!("{summary}");
     Ok(())
 }
 
+/// Writes a range fit's parameters (`--out-params`) as pretty JSON.
+pub fn write_params(path: &Path, report: &FitReport) -> Result<(), String> {
+    let json = serde_json::to_string_pretty(&FittedParams::from_report(report))
+        .map_err(|e| e.to_string())?;
+    std::fs::write(path, json).map_err(|e| format!("{}: cannot write: {e}", path.display()))
+}
+
+/// Fits one cloud (`name` for the messages) with `args`' options, the membrane's stiffness from
+/// the cloud's noise where asked; `progress`: a line on stderr every half second. Gives the
+/// JSON summary line and the report.
+pub fn fit_points(
+    points: &[DVec3],
+    name: &str,
+    args: &Args,
+    progress: bool,
+) -> Result<(serde_json::Value, FitReport), String> {
+    // The wall time includes the noise estimate.
+    let start = Instant::now();
+    let (options, noise) = cloud_options(points, &args.plan).map_err(|e| format!("{name}: {e}"))?;
+    let mut last_print = Instant::now();
+    let report = if args.app {
+        fit_through_app(points, &options)
+    } else {
+        fit(points, &options, |p| {
+            if progress && (last_print.elapsed().as_millis() >= 500 || p.step.is_multiple_of(1000))
+            {
+                last_print = Instant::now();
+                let stage = match p.stage {
+                    Stage::Cover => "placing",
+                    Stage::Global => "global",
+                    Stage::Joint => "global+local",
+                };
+                let rate = p.step as f64 / start.elapsed().as_secs_f64().max(1e-9);
+                eprintln!(
+                    "step {:>6}  {stage:<12}  motion {:.2e}  energy {:.4e}  reattached {:>3}x  {:.0} steps/s",
+                    p.step, p.max_motion, p.energy, p.reassignments, rate
+                );
+            }
+        })
+    }
+    .map_err(|e| format!("{name}: {e}"))?;
+    let wall = start.elapsed();
+    let through = if args.app { "plugin" } else { "core" };
+    let mut summary = range_summary(
+        name,
+        &report,
+        points.len(),
+        wall,
+        through,
+        options.global_only,
+    );
+    if let Some(noise) = noise {
+        summary["noise"] = noise.relative.into();
+        summary["w0"] = options.dynamics.w0.into();
+        summary["w1"] = options.dynamics.w1.into();
+    }
+    Ok((summary, report))
+}
+
 /// `POINTS --parts N`: N parts on one cloud (`model::parts`), one JSON line per part (the point
 /// fitter's, with `part` and its point count) and one for the whole.
-fn run_parts(points: &[DVec3], name: &str, args: &Args) -> Result<(), String> {
+fn run_parts(
+    points: &[DVec3],
+    name: &str,
+    options: &FitOptions,
+    args: &Args,
+) -> Result<(), String> {
     if args.app {
         return Err("--app fits one part; drop it or --parts".into());
     }
     let k = args.image.auto_parts;
     let start = Instant::now();
-    let report = fit_parts(points, k, 8, &args.options).map_err(|e| format!("{name}: {e}"))?;
+    let report = fit_parts(points, k, 8, options).map_err(|e| format!("{name}: {e}"))?;
     let wall = start.elapsed();
     for (j, part) in report.fits.iter().enumerate() {
         let n = report.owner.iter().filter(|&&o| o == j).count();
-        let mut line = range_summary(name, part, n, wall, "core", args.options.global_only);
+        let mut line = range_summary(name, part, n, wall, "core", options.global_only);
         line["part"] = serde_json::json!(j);
         println!("{line}");
     }

@@ -10,6 +10,7 @@
 //! (only `--app`, which runs the fit through the plugin, needs the `bevy` feature).
 
 mod args;
+mod batch;
 mod fit;
 
 use clap::error::ErrorKind;
