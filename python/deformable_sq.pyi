@@ -1,0 +1,152 @@
+"""Deformable superquadrics (Terzopoulos & Metaxas, PAMI 1991): fit point clouds and images.
+
+``fit`` takes an (N, 3) array and the keywords of ``dsq fit``'s flags, and fits the cloud exactly
+as ``dsq fit`` fits the same points. Every fit releases the GIL, so threads fit in parallel. Bad
+input raises ``ValueError`` with the one-line message ``dsq`` prints.
+"""
+
+from os import PathLike
+from typing import Literal, Sequence, TypedDict
+
+import numpy as np
+import numpy.typing as npt
+
+__version__: str
+
+class Residuals(TypedDict):
+    """Point-to-surface distances as fractions of the bounding-box diagonal."""
+
+    mean: float
+    rms: float
+    p95: float
+    max: float
+    diagonal: float
+
+class FitResult:
+    """A superquadric (and its membrane) fitted to a point cloud."""
+
+    @property
+    def translation(self) -> list[float]:
+        """The model frame's origin c, in data units."""
+    @property
+    def rotation(self) -> list[float]:
+        """The rotation as a unit quaternion [w, x, y, z] (the paper's [s, v1, v2, v3])."""
+    @property
+    def rotation_matrix(self) -> npt.NDArray[np.float64]:
+        """The rotation as a 3 x 3 matrix (model frame to data frame)."""
+    @property
+    def a(self) -> float:
+        """The scale a, in data units."""
+    @property
+    def aspect(self) -> list[float]:
+        """The aspect ratios a1, a2, a3."""
+    @property
+    def epsilon(self) -> list[float]:
+        """The squareness exponents e1 (along z) and e2 (about z)."""
+    @property
+    def taper(self) -> list[float]:
+        """The tapering (t_x, t_y); zero unless ``taper=True``."""
+    @property
+    def bend(self) -> list[float]:
+        """The bending (b_x, b_y); zero unless ``bend=True``."""
+    @property
+    def residuals(self) -> Residuals:
+        """Point-to-surface distances over the bounding-box diagonal."""
+    @property
+    def converged(self) -> bool:
+        """Whether the fit came to rest before its step cap."""
+    @property
+    def steps(self) -> int:
+        """Steps (or solver iterations) taken."""
+    @property
+    def nodes(self) -> int:
+        """The membrane's node count."""
+    @property
+    def solver(self) -> Literal["solved", "dynamics"]:
+        """Which solver ran."""
+    @property
+    def noise(self) -> float | None:
+        """The noise the points show (fraction of the diagonal), when the stiffness came from it."""
+    def mesh(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
+        """The fitted closed surface: vertices (V, 3) and triangles (F, 3)."""
+    def surface_points(self, n: int, seed: int = 0) -> npt.NDArray[np.float64]:
+        """``n`` points on the fitted surface, uniform by area, as an (n, 3) array."""
+    def to_dict(self) -> dict[str, object]:
+        """The parameters as ``dsq fit --out-params`` writes them."""
+
+class ImagePart:
+    """One part fitted to an image, in the image plane's frame (the image's longer side spans
+    [-0.5, 0.5], y up)."""
+
+    @property
+    def translation(self) -> list[float]: ...
+    @property
+    def rotation(self) -> list[float]: ...
+    @property
+    def a(self) -> float: ...
+    @property
+    def aspect(self) -> list[float]: ...
+    @property
+    def epsilon(self) -> list[float]: ...
+    @property
+    def converged(self) -> bool: ...
+    @property
+    def steps(self) -> int: ...
+    @property
+    def stopped(self) -> str | None:
+        """Why the part was stopped (it grew without bound or left the image), or None."""
+    @property
+    def outline(self) -> tuple[float, float]:
+        """The mean image potential along the outline before and after (1: a strong edge)."""
+    def mesh(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]: ...
+
+def fit(
+    points: npt.ArrayLike,
+    *,
+    global_only: bool = False,
+    solver: Literal["solved", "lm", "dynamics"] = "solved",
+    paper_forces: bool = False,
+    robust: bool = False,
+    plane: bool = False,
+    switch: bool = False,
+    similar: bool = False,
+    migrate: bool = False,
+    taper: bool = False,
+    bend: bool = False,
+    outliers: float = 0.2,
+    nodes: int | None = None,
+    k: int | None = None,
+    w0: float | None = None,
+    w1: float | Literal["auto"] | None = None,
+    beta: float | None = None,
+    max_steps: int | None = None,
+    reassign: int | None = None,
+    implicit_local: float | None = None,
+) -> FitResult:
+    """Fits a deformable superquadric to an (N, 3) array of points with ``dsq fit``'s defaults
+    for a cloud; each keyword is the flag of the same name (docs/cli.md)."""
+
+def load_points(path: str | PathLike[str]) -> npt.NDArray[np.float64]:
+    """The points of an OBJ (its vertices) or PLY file as an (N, 3) array."""
+
+def fit_image(
+    image: npt.ArrayLike,
+    parts: Sequence[Sequence[float]],
+    *,
+    global_only: bool = False,
+    sigma: float = 2.0,
+    band: float = 0.2,
+    region: float = 0.0,
+    paper_band: bool = False,
+    free_depth: bool = False,
+    fix_epsilon: bool = False,
+    nodes: int | None = None,
+    k: int | None = None,
+    w0: float | None = None,
+    w1: float | None = None,
+    beta: float | None = None,
+    max_steps: int | None = None,
+) -> list[ImagePart]:
+    """Fits one part per entry of ``parts`` (eight pixel coordinates: both ends of the major
+    axis, then of the minor) to an (H, W) grey or (H, W, 3) colour image, as
+    ``dsq fit --image`` does."""

@@ -1,0 +1,192 @@
+"""The Python package against generated truth and against `dsq fit` on the same files.
+
+Run from the repository: `pytest python/tests`. The `dsq` binary to compare with is $DSQ, or
+target/release/dsq (`cargo build --release --no-default-features --bin dsq`).
+"""
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import deformable_sq as d
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = REPO / "assets" / "data"
+DSQ = Path(os.environ.get("DSQ", REPO / "target" / "release" / "dsq"))
+
+
+def superquadric_cloud(a, e1, e2, n, noise, seed):
+    """Points on a superquadric with semi-axes `a` (along x, y, z), turned and moved."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-np.pi / 2, np.pi / 2, n)
+    v = rng.uniform(-np.pi, np.pi, n)
+    f = lambda x, e: np.sign(x) * np.abs(x) ** e  # noqa: E731
+    p = np.stack(
+        [
+            a[0] * f(np.cos(u), e1) * f(np.cos(v), e2),
+            a[1] * f(np.cos(u), e1) * f(np.sin(v), e2),
+            a[2] * f(np.sin(u), e1),
+        ],
+        axis=1,
+    )
+    c, s = np.cos(0.6), np.sin(0.6)
+    turn = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    return p @ turn.T + np.array([1.0, -2.0, 0.5]) + rng.normal(scale=noise, size=p.shape)
+
+
+def dsq(*args):
+    assert DSQ.exists(), f"{DSQ} not built: cargo build --release --no-default-features --bin dsq"
+    return subprocess.run([str(DSQ), "fit", *map(str, args)], capture_output=True, text=True)
+
+
+def test_numpy_in_parameters_and_arrays_out_recover_a_generated_superquadric():
+    pts = superquadric_cloud((0.5, 0.8, 1.4), 0.5, 1.0, 2000, 0.002, 1)
+    r = d.fit(pts.astype(np.float32), global_only=True)
+    assert r.converged and r.solver == "solved"
+    semi = sorted(r.a * np.array(r.aspect))
+    assert np.allclose(semi, [0.5, 0.8, 1.4], rtol=0.03), semi
+    assert r.residuals["mean"] < 0.005
+    assert np.allclose(r.translation, [1.0, -2.0, 0.5], atol=0.02)
+    m = r.rotation_matrix
+    assert m.shape == (3, 3) and np.allclose(m @ m.T, np.eye(3), atol=1e-9)
+    w, x, y, z = r.rotation
+    assert abs(w * w + x * x + y * y + z * z - 1) < 1e-9
+    v, f = r.mesh()
+    assert v.shape == (r.nodes, 3) and v.dtype == np.float64
+    assert f.dtype == np.int64 and f.shape[1] == 3 and f.min() == 0 and f.max() == r.nodes - 1
+    s = r.surface_points(500, seed=3)
+    assert s.shape == (500, 3) and np.isfinite(s).all()
+    # The samples lie on the mesh's triangles: each within its longest edge of a vertex.
+    edges = np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2)
+    nearest = np.min(np.linalg.norm(s[:, None, :] - v[None, :, :], axis=2), axis=1)
+    assert nearest.max() <= edges.max()
+    assert np.array_equal(s, r.surface_points(500, seed=3))
+
+
+def test_the_same_file_fits_as_dsq_fit_bit_for_bit(tmp_path):
+    for name, flags in [
+        ("ems/noisy_pointCloud_example_2.ply", []),
+        ("ems/partial_pointCloud_example_3.ply", ["--global-only"]),
+        ("bunny_scan.obj", ["--global-only", "--taper", "--bend"]),
+    ]:
+        path = DATA / name
+        out = tmp_path / "params.json"
+        run = dsq(path, "--quiet", "--out-params", out, *flags)
+        assert run.returncode == 0, run.stderr
+        options = {f.lstrip("-").replace("-", "_"): True for f in flags}
+        ours = d.fit(d.load_points(path), **options).to_dict()
+        assert ours == json.loads(out.read_text()), name
+
+
+def test_bad_input_raises_value_error_with_dsqs_message(tmp_path):
+    few = np.random.default_rng(0).normal(size=(5, 3))
+    ply = tmp_path / "few.ply"
+    ply.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n" + "\n".join(" ".join(f"{x:.17g}" for x in p) for p in few)
+    )
+    cli = dsq(ply, "--quiet")
+    assert cli.returncode == 2
+    with pytest.raises(ValueError) as e:
+        d.fit(few)
+    assert cli.stderr.strip() == f"error: {ply}: {e.value}"
+    nan = np.ones((100, 3))
+    nan[7, 1] = np.nan
+    for points, says in [
+        (nan, "point 7 has a NaN"),
+        (np.ones((100, 2)), "(N, 3)"),
+        (np.ones(30), "(N, 3)"),
+        ([["a", "b", "c"]] * 20, "cannot read"),
+        (np.ones((100, 3)), "coincide"),
+    ]:
+        with pytest.raises(ValueError, match=None) as e:
+            d.fit(points)
+        assert says in str(e.value), (says, str(e.value))
+    pts = superquadric_cloud((1, 1, 1), 1, 1, 200, 0.0, 2)
+    for options, says in [
+        ({"no_such_option": 1}, "unknown option"),
+        ({"global_only": "yes"}, "global_only: expected True or False"),
+        ({"solver": "newton"}, "not a solver"),
+        ({"outliers": 1.5}, "outlier_ratio"),
+        ({"nodes": 964}, "nearest is 963"),
+        ({"w1": "often"}, "w1: expected a number"),
+    ]:
+        with pytest.raises(ValueError) as e:
+            d.fit(pts, **options)
+        assert says in str(e.value), (options, str(e.value))
+    with pytest.raises(ValueError, match="broken.ply"):
+        (tmp_path / "broken.ply").write_text("not a ply\n")
+        d.load_points(tmp_path / "broken.ply")
+
+
+def test_a_fit_releases_the_gil():
+    pts = superquadric_cloud((0.5, 0.8, 1.4), 0.5, 1.0, 20000, 0.002, 4)
+    done = threading.Event()
+    ticks = 0
+
+    def fit():
+        d.fit(pts)
+        done.set()
+
+    t = threading.Thread(target=fit)
+    t.start()
+    # While the fit runs, this thread keeps running Python code only if the fit let go of the
+    # GIL; holding it, the loop would get the GIL back only when the fit ends.
+    while not done.is_set():
+        ticks += 1
+        time.sleep(0)
+    t.join()
+    assert ticks > 1000, ticks
+
+
+def test_an_image_part_is_fitted_to_a_generated_disc():
+    h, w = 120, 160
+    rows, cols = np.mgrid[0:h, 0:w]
+    image = np.where((cols - 80.0) ** 2 / 30**2 + (rows - 60.0) ** 2 / 20**2 <= 1, 40, 230)
+    parts = d.fit_image(image.astype(np.uint8), [(58, 61, 102, 61, 80, 47, 80, 75)],
+                        global_only=True, region=0.04)
+    assert len(parts) == 1 and parts[0].converged and parts[0].stopped is None
+    before, after = parts[0].outline
+    assert after > before and after > 0.8
+    v, f = parts[0].mesh()
+    # The silhouette's extent in pixels (the image's longer side spans [-0.5, 0.5]).
+    x = v[:, 0] * w + w / 2
+    assert abs((x.max() - x.min()) - 60) < 4
+    with pytest.raises(ValueError, match="parts\\[0\\]"):
+        d.fit_image(image, [(1, 2, 3)])
+    with pytest.raises(ValueError, match="unknown option"):
+        d.fit_image(image, [(58, 61, 102, 61, 80, 47, 80, 75)], solver="solved")
+
+
+def test_the_dask_example_gives_the_cli_batchs_table(tmp_path):
+    for i in range(6):
+        pts = superquadric_cloud((0.4 + 0.1 * i, 0.8, 1.2), 0.3 + 0.2 * i, 1.0, 800, 0.005, 10 + i)
+        lines = "\n".join(" ".join(f"{x:.17g}" for x in p) for p in pts)
+        (tmp_path / f"c{i}.ply").write_text(
+            f"ply\nformat ascii 1.0\nelement vertex {len(pts)}\nproperty double x\n"
+            f"property double y\nproperty double z\nend_header\n{lines}\n"
+        )
+    table = tmp_path / "table.jsonl"
+    example = REPO / "examples" / "python" / "batch_dask.py"
+    run = subprocess.run(
+        [sys.executable, str(example), str(tmp_path), "--workers", "2", "--global-only",
+         "--out", str(table)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert run.returncode == 0, run.stderr
+    rows = [json.loads(line) for line in table.read_text().splitlines()]
+    files = sorted(tmp_path.glob("c*.ply"))
+    cli = dsq(*files, "--global-only", "--quiet")
+    assert cli.returncode == 0, cli.stderr
+    batch = [json.loads(line) for line in cli.stdout.splitlines()]
+    assert [r["file"] for r in rows] == [b["file"] for b in batch] == list(map(str, files))
+    for row, line in zip(rows, batch):
+        for key in ("a", "a1", "a2", "a3", "e1", "e2", "mean", "p95", "converged", "steps"):
+            assert row[key] == line[key], (row["file"], key)
