@@ -129,3 +129,24 @@ fn batch_options_that_cannot_apply_are_refused_in_one_line() {
         assert!(out.stdout.is_empty(), "{args:?}: nothing is fitted");
     }
 }
+
+#[test]
+fn a_reader_that_goes_away_ends_the_run_quietly() {
+    // `dsq fit *.ply | head -1`: stdout closes before the lines are written.
+    let files: Vec<String> = (1..=3)
+        .map(|i| shipped(&format!("ems/noisy_pointCloud_example_{i}.ply")))
+        .collect();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_dsq"))
+        .arg("fit")
+        .args(&files)
+        .args(["--global-only", "--quiet"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run dsq fit");
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(out.status.code(), Some(0), "{err}");
+}

@@ -63,7 +63,7 @@ pub fn run(files: &[PathBuf], args: &Args) -> Result<(), String> {
                 let line = outcome.unwrap_or_else(|e| {
                     serde_json::json!({ "file": files[next].display().to_string(), "error": e })
                 });
-                bar.suspend(|| println!("{line}"));
+                bar.suspend(|| crate::emit(&line));
                 next += 1;
             }
         }

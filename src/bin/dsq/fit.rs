@@ -61,7 +61,7 @@ pub fn run(args: Args, paper_points: Option<Vec<DVec3>>) -> Result<(), String> {
     if let Some(path) = &args.out_params {
         write_params(path, &report)?;
     }
-    println!("{summary}");
+    crate::emit(&summary);
     Ok(())
 }
 
@@ -143,19 +143,16 @@ fn run_parts(
         let n = report.owner.iter().filter(|&&o| o == j).count();
         let mut line = range_summary(name, part, n, wall, "core", options.global_only);
         line["part"] = serde_json::json!(j);
-        println!("{line}");
+        crate::emit(&line);
     }
-    println!(
-        "{}",
-        serde_json::json!({
-            "file": name,
-            "parts": k,
-            "points": points.len(),
-            "rounds": report.rounds,
-            "stable": report.stable,
-            "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
-        })
-    );
+    crate::emit(serde_json::json!({
+        "file": name,
+        "parts": k,
+        "points": points.len(),
+        "rounds": report.rounds,
+        "stable": report.stable,
+        "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
+    }));
     Ok(())
 }
 
@@ -239,7 +236,7 @@ fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
         line["area_px"] = sil.area.into();
         line["width_px"] = ((sil.width * 10.0).round() / 10.0).into();
         line["on_foreground"] = ((sil.on_foreground * 1e3).round() / 1e3).into();
-        println!("{line}");
+        crate::emit(&line);
         all_params.push(line);
     }
     if let Some(out) = &args.out_params {
@@ -256,7 +253,7 @@ fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
         "iou_before": silhouette_iou(&potential, &parts_on(&tess, &before)),
         "iou_after": silhouette_iou(&potential, &parts_on(&tess, &after)),
     });
-    println!("{summary}");
+    crate::emit(&summary);
     Ok(())
 }
 
@@ -338,7 +335,7 @@ fn run_scene_file(path: &Path, args: &Args) -> Result<(), String> {
             line["w0"] = part.w0.into();
             line["w1"] = part.w1.into();
         }
-        println!("{line}");
+        crate::emit(&line);
         lines.push(line);
         let mut x = Vec::new();
         run.state().node_positions(&tess, &mut x);
@@ -347,7 +344,7 @@ fn run_scene_file(path: &Path, args: &Args) -> Result<(), String> {
         triangles.extend(tess.triangles().iter().map(|t| t.map(|i| i + base)));
     }
     for line in split_summaries(&def, &data, &runs, &file) {
-        println!("{line}");
+        crate::emit(&line);
         lines.push(line);
     }
     if let Some(out) = &args.out_mesh {

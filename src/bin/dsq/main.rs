@@ -58,6 +58,20 @@ fn main() -> ExitCode {
     }
 }
 
+/// Prints one line to stdout. When the reader has gone (`dsq fit *.ply | head`), the program
+/// ends quietly, as any filter does on a closed pipe; another write error ends it with code 2.
+pub fn emit(line: impl std::fmt::Display) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    if let Err(e) = writeln!(out, "{line}").and_then(|()| out.flush()) {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            std::process::exit(0);
+        }
+        eprintln!("error: cannot write to stdout: {e}");
+        std::process::exit(2);
+    }
+}
+
 /// Prints `message`'s first line to stderr as one line, `error: …`, and gives exit code 2.
 fn fail(message: &str) -> ExitCode {
     let line = message.lines().find(|l| !l.trim().is_empty()).unwrap_or("");
