@@ -384,7 +384,8 @@ fn toolbar(
 }
 
 /// The mouse and keys, also in docs/sandbox.md; shown over the toolbar's frame time.
-const CHEAT_SHEET: &str = "Left drag on a model: pull it with a spring
+const CHEAT_SHEET: &str = "Left drag on a model: grab it (moves and dents it, its shape held)
+Shift + left drag on a model: the paper's pull (its global shape gives way too)
 Left / right drag on empty space: orbit; middle drag or Shift + right drag: pan
 Wheel or + / -: zoom; arrows: orbit; Home: reset view
 Space: pause / run; S: single step; R: reset the selected part; F: fit it to convergence

@@ -87,9 +87,11 @@ impl Plugin for MouseSpringPlugin {
 }
 
 /// Left press on a model: a spring from the grabbed surface point (its nearest node's material
-/// coordinates) to the cursor.
+/// coordinates) to the cursor. A grab holds the model's global shape while it acts; with Shift
+/// held at the press, the spring reshapes the superquadric too ([`Spring::reshape`]).
 fn grab(
     press: On<Pointer<Press>>,
+    keys: Option<Res<ButtonInput<KeyCode>>>,
     settings: Res<MouseSpringSettings>,
     mut mouse: ResMut<MouseSpring>,
     mut models: Query<(
@@ -118,9 +120,10 @@ fn grab(
     world_positions(tess, rigid, shape, local, &mut nodes);
     let size = shape.a.max(1e-3);
     let stiffness = Spring::mouse_stiffness(model_settings, size);
-    let Some(spring) = Spring::grab(tess, &nodes, hit.as_dvec3(), stiffness) else {
+    let Some(mut spring) = Spring::grab(tess, &nodes, hit.as_dvec3(), stiffness) else {
         return;
     };
+    spring.reshape = keys.is_some_and(|k| k.any_pressed([KeyCode::ShiftLeft, KeyCode::ShiftRight]));
     let index = match springs {
         Some(mut s) => {
             s.0.push(spring);

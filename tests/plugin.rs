@@ -663,6 +663,7 @@ fn a_model_with_inertia_keeps_moving_swings_on_a_spring_and_resets_to_rest() {
                 v: 0.0,
                 anchor,
                 stiffness: 4.0,
+                reshape: true,
             }]),
         ))
         .id();
@@ -801,6 +802,7 @@ fn a_joint_keeps_a_pulled_part_attached_to_another() {
                 v: 0.0,
                 anchor: DVec3::new(3.0, 0.0, 0.0),
                 stiffness: 1.0,
+                reshape: true,
             }]));
         if jointed {
             app.world_mut()

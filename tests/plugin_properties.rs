@@ -344,6 +344,7 @@ fn run(ops: &[Op]) -> Result<(), TestCaseError> {
                         v,
                         anchor: c + DVec3::new(distance, 0.5 * distance, 0.0),
                         stiffness,
+                        reshape: true,
                     }]));
             }
             Op::Settings { m, s } => {
@@ -468,6 +469,7 @@ fn workload(pools: TaskPoolOptions) -> (u64, usize) {
                 v: 1.0,
                 anchor: centre + DVec3::new(0.0, 4.0, 0.0),
                 stiffness: 0.5,
+                reshape: true,
             }]));
         }
         models.push(e.id());

@@ -211,6 +211,16 @@ fn the_sandbox_renders_its_models() {
         .find(|l| l.starts_with("demo drag:"))
         .unwrap_or_else(|| panic!("no demo drag report in {stdout}"));
     assert!(line.contains("cylinder grabbed: true"), "{line}");
+    // A grab carries the cylinder and keeps its shape: semi-axes within 1.5×, ε within 0.2.
+    let figure = |key: &str, end: &str| -> f64 {
+        line.split(key)
+            .nth(1)
+            .and_then(|t| t.split(end).next())
+            .and_then(|t| t.trim().parse().ok())
+            .unwrap_or_else(|| panic!("no {key:?} in {line}"))
+    };
+    assert!(figure("semi-axes within", "x,") <= 1.5, "{line}");
+    assert!(figure("epsilon within", ",") <= 0.2, "{line}");
     let dx: f64 = line
         .rsplit("(x ")
         .next()

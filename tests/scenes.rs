@@ -1048,6 +1048,7 @@ fn a_scenes_joints_hold_a_pulled_chain_together_and_are_saved() {
             v: 0.0,
             anchor: DVec3::new(3.5, 2.0, 0.0),
             stiffness: 2.0,
+            reshape: true,
         }]));
     for _ in 0..600 {
         app.world_mut().run_schedule(Step);

@@ -1,8 +1,8 @@
 //! `--demo-drag [--demo-part NAME]` (for the sandbox's render test): once the part (default the
 //! cylinder) has taken 20 steps, moves the real cursor onto it, presses the left button as the
-//! windowing system would report it, drags 160 pixels to the right over 40 frames and holds, then
-//! prints how far the part moved. Picking, the grab, the drag and the spring all run as they do
-//! for a user.
+//! windowing system would report it, drags about 175 pixels to the upper right over 40 frames and
+//! holds, then prints how far the part moved and how much its shape changed. Picking, the grab,
+//! the drag and the spring all run as they do for a user.
 use bevy::input::ButtonState;
 use bevy::input::mouse::MouseButtonInput;
 use bevy::prelude::*;
@@ -30,16 +30,17 @@ pub fn maybe_add(app: &mut App, args: &[String]) {
 
 fn demo_drag(
     mut frame: Local<u32>,
-    mut start: Local<Option<(Vec2, DVec3)>>,
+    mut start: Local<Option<(Vec2, DVec3, GlobalShape)>>,
     part: Res<DemoPart>,
     mouse: Res<MouseSpring>,
     mut window: Single<(Entity, &mut Window)>,
     camera: Single<(&Camera, &GlobalTransform)>,
-    parts: Query<(&Name, &RigidState, &SimControl)>,
+    parts: Query<(&Name, &RigidState, &GlobalShape, &SimControl)>,
     mut buttons: MessageWriter<MouseButtonInput>,
     mut events: MessageWriter<WindowEvent>,
 ) {
-    let Some((name, rigid, control)) = parts.iter().find(|(n, ..)| n.as_str() == part.0) else {
+    let Some((name, rigid, shape, control)) = parts.iter().find(|(n, ..)| n.as_str() == part.0)
+    else {
         return;
     };
     if control.steps < 20 {
@@ -47,12 +48,12 @@ fn demo_drag(
     }
     let (camera, cam_tf) = *camera;
     let (window_entity, window) = &mut *window;
-    let Some((p0, c0)) = *start else {
+    let Some((p0, c0, shape0)) = *start else {
         let Ok(p) = camera.world_to_viewport(cam_tf, rigid.translation.as_vec3()) else {
             return;
         };
         window.set_cursor_position(Some(p));
-        *start = Some((p, rigid.translation));
+        *start = Some((p, rigid.translation, *shape));
         return;
     };
     *frame += 1;
@@ -67,14 +68,29 @@ fn demo_drag(
             buttons.write(press);
             events.write(WindowEvent::MouseButtonInput(press));
         }
-        4..=43 => window.set_cursor_position(Some(p0 + Vec2::new(4.0 * (*frame - 3) as f32, 0.0))),
-        44 => println!(
-            "demo drag: {} grabbed: {}, moved by {:.3} (x {:.3})",
-            name,
-            mouse.model.is_some(),
-            (rigid.translation - c0).length(),
-            rigid.translation.x - c0.x
-        ),
+        4..=43 => {
+            let step = (*frame - 3) as f32;
+            window.set_cursor_position(Some(p0 + Vec2::new(3.6, -2.4) * step));
+        }
+        44 => {
+            let axes = |s: &GlobalShape| [s.a * s.a1, s.a * s.a2, s.a * s.a3];
+            let (before, after) = (axes(&shape0), axes(shape));
+            let stretch = (0..3)
+                .map(|i| (after[i] / before[i]).max(before[i] / after[i]))
+                .fold(0.0, f64::max);
+            let eps = (shape.e1 - shape0.e1)
+                .abs()
+                .max((shape.e2 - shape0.e2).abs());
+            println!(
+                "demo drag: {} grabbed: {}, semi-axes within {:.3}x, epsilon within {:.3}, moved by {:.3} (x {:.3})",
+                name,
+                mouse.model.is_some(),
+                stretch,
+                eps,
+                (rigid.translation - c0).length(),
+                rigid.translation.x - c0.x
+            );
+        }
         _ => {}
     }
 }

@@ -306,6 +306,7 @@ pub fn integrate(
         &mut SimControl,
         &mut Scratch,
         Option<&mut Inertia>,
+        Option<&SpringForces>,
     )>,
 ) {
     models.par_iter_mut().for_each(
@@ -319,6 +320,7 @@ pub fn integrate(
             mut control,
             mut scratch,
             inertia,
+            springs,
         )| {
             let ticks = state_ticks(&fem, &rigid, &shape, &local);
             let Some(tess) = fem.get() else { return };
@@ -330,7 +332,11 @@ pub fn integrate(
             let mut state = take_state(&rigid, &shape, &mut local);
             let scratch = &mut *scratch;
             scratch.prepared = None;
-            let params = settings.dynamics_at(control.steps);
+            let mut params = settings.dynamics_at(control.steps);
+            // A grab moves, turns and dents the model; its global shape is held meanwhile.
+            if springs.is_some_and(|s| s.0.iter().any(|s| !s.reshape)) {
+                params.free = params.free.beyond_the_paper(true, false, false);
+            }
             let explicit = inertia.is_none();
             let stepped = match inertia {
                 Some(mut inertia) => {

@@ -95,6 +95,11 @@ pub struct Spring {
     pub anchor: DVec3,
     /// Spring constant (force per unit length).
     pub stiffness: f64,
+    /// The spring reshapes the superquadric too (the paper's Fig. 1 pull: a, a1..a3, ε1, ε2 and
+    /// the tapering and bending move under it). False (a grab): while the spring acts, the
+    /// model's global shape is held, so it moves, turns and dents its membrane where it is
+    /// pulled, and a pull at one point cannot stretch it into a slab or square its section.
+    pub reshape: bool,
 }
 
 impl Spring {
@@ -112,8 +117,8 @@ impl Spring {
         Self::GAIN * (settings.w1 + settings.w0 * a * a).max(1e-6)
     }
 
-    /// A spring of constant `stiffness` on the node nearest `hit` (world space) of a model whose
-    /// world node positions are `node_x`, anchored at that node.
+    /// A grab ([`Self::reshape`] false) of constant `stiffness` on the node nearest `hit` (world
+    /// space) of a model whose world node positions are `node_x`, anchored at that node.
     pub fn grab(tess: &Tessellation, node_x: &[DVec3], hit: DVec3, stiffness: f64) -> Option<Self> {
         if node_x.len() != tess.node_count() || !hit.is_finite() || !(stiffness > 0.0) {
             return None;
@@ -129,6 +134,7 @@ impl Spring {
             v,
             anchor: node_x[node],
             stiffness,
+            reshape: false,
         })
     }
 
@@ -144,7 +150,8 @@ impl Spring {
     }
 }
 
-/// User springs acting on a model.
+/// User springs acting on a model. While one that does not [`Spring::reshape`] acts, the model's
+/// global shape is held.
 #[derive(Component, Reflect, Clone, Debug, Default, PartialEq)]
 #[reflect(Component, Default, Debug, PartialEq)]
 pub struct SpringForces(pub Vec<Spring>);
