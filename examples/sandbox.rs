@@ -379,6 +379,19 @@ fn toolbar(
             ui.label(format!("frame {frame_ms:.1} ms"))
                 .on_hover_text(CHEAT_SHEET);
         });
+        // What the overlays are (DeformableSqDebugPlugin's colours).
+        ui.horizontal_wrapped(|ui| {
+            let legend = [
+                ("• data points", egui::Color32::from_rgb(242, 242, 51)),
+                ("— data springs", egui::Color32::from_rgb(200, 200, 200)),
+                ("— mouse spring", egui::Color32::from_rgb(255, 51, 51)),
+                ("— joints", egui::Color32::from_rgb(51, 230, 230)),
+            ];
+            for (text, colour) in legend {
+                ui.label(egui::RichText::new(text).color(colour));
+            }
+            ui.label("· drag a model to move it, Shift + drag to reshape it; hover the frame time for all keys");
+        });
     });
     Ok(())
 }

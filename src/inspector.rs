@@ -343,6 +343,7 @@ fn inspector_window(
             if !state.message.is_empty() {
                 ui.label(&state.message);
             }
+            ui.weak("scroll down for fit to convergence, export and the residual plot");
             ui.separator();
             ui.label("Models");
             let mut list: Vec<(Entity, String)> = models
