@@ -7,7 +7,7 @@ use bevy_deformable_sq::model::fit::{
     CloudOptions, CloudPlan, FitOptions, Solver, Stiffness, k_for_nodes,
 };
 use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
-use bevy_deformable_sq::model::image_fit::ImageFitOptions;
+use bevy_deformable_sq::model::image_fit::{ImageChoices, ImageFitOptions};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -149,44 +149,31 @@ pub fn cloud_plan(options: Option<&Bound<'_, PyDict>>) -> PyResult<CloudPlan> {
     c.resolve(FitOptions::default(), true).map_err(value_error)
 }
 
-/// `fit_image`'s keywords as `dsq fit --image` reads its flags, and the potential's σ.
+/// `fit_image`'s keywords resolved as `dsq fit --image` resolves its flags, and the
+/// potential's σ.
 pub fn image_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<(ImageFitOptions, f64)> {
-    let (mut o, mut sigma) = (ImageFitOptions::default(), DEFAULT_SIGMA);
+    let mut c = ImageChoices::default();
     for (key, v) in keywords(options, &IMAGE_KEYWORDS)? {
         let flag = |v: &Bound<'_, PyAny>| value::<bool>(&key, v, "True or False");
         let number = |v: &Bound<'_, PyAny>| value::<f64>(&key, v, "a number");
         match key.as_str() {
-            "global_only" => o.local = !flag(&v)?,
-            "paper_band" => o.outline_only = !flag(&v)?,
-            "free_depth" => o.planar = !flag(&v)?,
-            "fix_epsilon" => o.fix_epsilon = flag(&v)?,
-            "sigma" => sigma = number(&v)?,
-            "band" => o.band = number(&v)?,
-            "region" => o.region = number(&v)?,
-            "nodes" | "k" => o.k = tessellation(&key, &v)?,
-            "w0" => o.dynamics.w0 = number(&v)?,
-            "w1" => o.dynamics.w1 = number(&v)?,
-            "beta" => o.beta = number(&v)?,
-            "max_steps" => o.max_steps = value(&key, &v, "a non-negative integer")?,
+            "global_only" => c.global_only = flag(&v)?,
+            "paper_band" => c.paper_band = flag(&v)?,
+            "free_depth" => c.free_depth = flag(&v)?,
+            "fix_epsilon" => c.fix_epsilon = flag(&v)?,
+            "sigma" => c.sigma = Some(number(&v)?),
+            "band" => c.band = Some(number(&v)?),
+            "region" => c.region = Some(number(&v)?),
+            "nodes" | "k" => c.k = Some(tessellation(&key, &v)?),
+            "w0" => c.w0 = Some(number(&v)?),
+            "w1" => c.w1 = Some(number(&v)?),
+            "beta" => c.beta = Some(number(&v)?),
+            "max_steps" => c.max_steps = Some(value(&key, &v, "a non-negative integer")?),
             _ => unreachable!("checked against IMAGE_KEYWORDS"),
         }
     }
-    for (name, x, ok) in [
-        ("sigma", sigma, sigma > 0.0),
-        ("band", o.band, o.band > 0.0),
-        ("region", o.region, o.region >= 0.0),
-        ("w0", o.dynamics.w0, o.dynamics.w0 >= 0.0),
-        ("w1", o.dynamics.w1, o.dynamics.w1 >= 0.0),
-        ("beta", o.beta, o.beta > 0.0),
-    ] {
-        if !(ok && x.is_finite()) {
-            return Err(value_error(format!("{name} = {x} is out of range")));
-        }
-    }
-    if o.k < 3 {
-        return Err(value_error(format!("k = {} is below the minimum 3", o.k)));
-    }
-    Ok((o, sigma))
+    c.resolve(ImageFitOptions::default(), DEFAULT_SIGMA)
+        .map_err(value_error)
 }
 
 /// An image array's width, height and row-major luminance in [0, 1]: (H, W) grey or (H, W, 3|4)

@@ -39,6 +39,9 @@ use super::superquadric::SuperquadricParams;
 use glam::{DMat3, DQuat, DVec2, DVec3};
 use std::sync::Arc;
 
+mod choices;
+pub use choices::ImageChoices;
+
 /// A part's placement in the image plane: centre, major semi-axis (a vector) and minor semi-axis.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PartAxes {

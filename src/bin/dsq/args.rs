@@ -7,7 +7,9 @@ use bevy_deformable_sq::model::fit::{
     CloudOptions, CloudPlan, FitOptions, Solver, Stiffness, k_for_nodes,
 };
 use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
-use bevy_deformable_sq::model::image_fit::{ImageFitOptions, doll_experiment, pestle_experiment};
+use bevy_deformable_sq::model::image_fit::{
+    ImageChoices, ImageFitOptions, doll_experiment, pestle_experiment,
+};
 use bevy_deformable_sq::synthetic;
 use clap::{Args as ClapArgs, ValueEnum};
 use glam::{DVec2, DVec3};
@@ -340,42 +342,24 @@ impl FitArgs {
             (Some(n), _) => Some(k_for_nodes(n)?),
             (None, k) => k.map(|k| k as usize),
         };
-        if let Some(k) = k {
-            image.options.k = k;
+        (image.options, image.sigma) = ImageChoices {
+            global_only: self.global_only,
+            paper_band: self.paper_band,
+            free_depth: self.free_depth,
+            fix_epsilon: self.fix_epsilon,
+            sigma: self.sigma,
+            band: self.band,
+            region: self.region,
+            k,
+            w0: self.w0,
+            w1: match self.w1 {
+                Some(W1::Value(w1)) => Some(w1),
+                _ => None,
+            },
+            beta: self.beta,
+            max_steps: self.max_steps.map(|n| n as usize),
         }
-        if let Some(w0) = self.w0 {
-            image.options.dynamics.w0 = w0;
-        }
-        if let Some(W1::Value(w1)) = self.w1 {
-            image.options.dynamics.w1 = w1;
-        }
-        if let Some(beta) = self.beta {
-            image.options.beta = beta;
-        }
-        if let Some(max_steps) = self.max_steps {
-            image.options.max_steps = max_steps as usize;
-        }
-        if let Some(sigma) = self.sigma {
-            image.sigma = sigma;
-        }
-        if let Some(band) = self.band {
-            image.options.band = band;
-        }
-        if self.paper_band {
-            image.options.outline_only = false;
-        }
-        if self.global_only {
-            image.options.local = false;
-        }
-        if self.free_depth {
-            image.options.planar = false;
-        }
-        if self.fix_epsilon {
-            image.options.fix_epsilon = true;
-        }
-        if let Some(region) = self.region {
-            image.options.region = region;
-        }
+        .resolve(image.options, image.sigma)?;
         if let Some(parts) = self.parts {
             image.auto_parts = parts;
         }
