@@ -15,12 +15,13 @@ use bevy::picking::pointer::PointerButton;
 use bevy::prelude::*;
 use bevy_deformable_sq::model::image_fit::ellipsoid_from_points;
 use bevy_deformable_sq::model::joint::JointEnd;
-use bevy_deformable_sq::plugin::scene::save_scene;
+use bevy_deformable_sq::plugin::scene::{AddedFile, FilePlacement, add_file, save_scene};
 use bevy_deformable_sq::plugin::world_positions;
 use bevy_deformable_sq::prelude::*;
 use bevy_egui::input::EguiWantsInput;
 use bevy_egui::{EguiContexts, EguiPrimaryContextPass, egui};
 use glam::DVec3;
+use std::path::Path;
 
 /// The schedule one simulation step runs in; the sandbox runs it `steps_per_frame` times a frame.
 #[derive(ScheduleLabel, Clone, Debug, PartialEq, Eq, Hash)]
@@ -87,12 +88,14 @@ fn main() -> AppExit {
         Update,
         (
             keys.before(MouseSpringSystems),
+            drop_files,
             (place_part, run_simulation, apply_display).after(MouseSpringSystems),
         ),
     )
     .add_systems(EguiPrimaryContextPass, toolbar)
     .add_observer(pick_joint_end);
     demo_drag::maybe_add(&mut app, &args);
+    demo_drop::maybe_add(&mut app, &args);
     screenshot::maybe_add(&mut app);
     app.run()
 }
@@ -124,6 +127,78 @@ fn save_open_scene(world: &mut World) {
         Err(e) => format!("save failed: {e}"),
     };
     world.resource_mut::<InspectorState>().message = message;
+}
+
+/// Files dropped on the window join the open scene ([`add_file`]): a scan as a part fitted to
+/// it, in front of what the camera looks at and clear of the other parts; an image as the
+/// backdrop, with a new part's four clicks begun. A file it cannot take says why in the message
+/// line, and the scene stays as it was.
+fn drop_files(mut drops: MessageReader<FileDragAndDrop>, mut commands: Commands) {
+    for drop in drops.read() {
+        if let FileDragAndDrop::DroppedFile { path_buf, .. } = drop {
+            let file = path_buf.clone();
+            commands.queue(move |w: &mut World| add_dropped(w, &file));
+        }
+    }
+}
+
+/// Adds one dropped file to the open scene and says what came of it.
+fn add_dropped(world: &mut World, file: &Path) {
+    let Some(root) = world.resource::<Sandbox>().root else {
+        return;
+    };
+    let target = world.resource::<orbit::Orbit>().target.as_dvec3();
+    let placement = FilePlacement {
+        at: free_spot(world, root, target),
+        radius: DROPPED_RADIUS,
+        extent: DROPPED_EXTENT,
+    };
+    let result = add_file(world, root, file, placement, &screenshot::assets_dir().0);
+    let message = match result {
+        Ok(AddedFile::Part { name, points }) => {
+            world.resource_mut::<InspectorState>().select_name = Some(name.clone());
+            format!("added {name}: {points} points, placed from their moments and fitted")
+        }
+        Ok(AddedFile::Image { name, size }) => {
+            let mut sandbox = world.resource_mut::<Sandbox>();
+            sandbox.show_images = true;
+            let mut inspector = InspectorState::default();
+            begin(&mut sandbox, &mut inspector, false);
+            format!(
+                "added {name} ({} x {} px) as the backdrop. {}",
+                size.0, size.1, inspector.message
+            )
+        }
+        Err(e) => format!("not added: {e}"),
+    };
+    world.resource_mut::<InspectorState>().message = message;
+}
+
+/// The RMS radius a dropped scan is scaled to. The default scene's models have RMS radii of
+/// 0.45–0.6; a scan is often long and thin (the cow's longest semi-axis is 2.7 times its RMS
+/// radius), and at 0.35 such a scan's long axis stays under 1, within the 1.5 between parts.
+const DROPPED_RADIUS: f64 = 0.35;
+
+/// The world length of a dropped image's longer side: the width of the default scene's row of
+/// models.
+const DROPPED_EXTENT: f64 = 6.0;
+
+/// Where a dropped scan goes: the point of a 1.5-unit grid on the models' height (y = 0.6)
+/// nearest to 1.5 in front of `target`, at least 1.4 from every part (the default scene's
+/// spacing, less a margin).
+fn free_spot(world: &mut World, root: Entity, target: DVec3) -> DVec3 {
+    let parts: Vec<DVec3> = world
+        .query::<(&RigidState, &ChildOf)>()
+        .iter(world)
+        .filter(|(_, c)| c.parent() == root)
+        .map(|(r, _)| r.translation)
+        .collect();
+    let want = DVec3::new(target.x, 0.6, target.z + 1.5);
+    let grid = (-8..=8).flat_map(|i| (-8..=8).map(move |j| (i, j)));
+    grid.map(|(i, j)| want + 1.5 * DVec3::new(i as f64, 0.0, j as f64))
+        .filter(|c| parts.iter().all(|p| p.distance(*c) >= 1.4))
+        .min_by(|a, b| a.distance(want).total_cmp(&b.distance(want)))
+        .unwrap_or(want)
 }
 
 /// Starts placing a new part, or making a joint, and shows how.
@@ -406,6 +481,8 @@ N: new part from four clicks (major axis ends, minor axis ends); J: new joint; E
 
 #[path = "support/demo_drag.rs"]
 mod demo_drag;
+#[path = "support/demo_drop.rs"]
+mod demo_drop;
 #[path = "support/orbit.rs"]
 mod orbit;
 #[path = "support/screenshot.rs"]

@@ -60,6 +60,8 @@ mod part;
 mod validate;
 pub use format::*;
 pub use load::*;
+#[cfg(feature = "bevy")]
+pub(crate) use validate::relative_path;
 
 /// The file extension of scene files (`egg.dsq.ron`), registered with the asset loader.
 pub const SCENE_EXTENSION: &str = "dsq.ron";

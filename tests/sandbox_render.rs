@@ -41,6 +41,43 @@ fn renderer_available() -> bool {
     has_xvfb
 }
 
+/// Pixels brighter than a near-black background (`lit`), and, inside `region` (x and y ranges),
+/// the count of pixels classed as each colour of `palette`: the nearest by chromaticity (the
+/// colours are shaded and tone-mapped), when within 0.15 of it.
+fn colour_counts(
+    img: &image::Rgb32FImage,
+    palette: &[[f32; 3]],
+    region: (std::ops::Range<u32>, std::ops::Range<u32>),
+) -> (usize, Vec<usize>) {
+    let mut lit = 0usize;
+    let mut counts = vec![0usize; palette.len()];
+    for (x, y, p) in img.enumerate_pixels() {
+        let c = [p.0[0], p.0[1], p.0[2]];
+        let bright = c.iter().sum::<f32>();
+        if bright > 0.45 {
+            lit += 1;
+        }
+        if !region.0.contains(&x) || !region.1.contains(&y) || bright < 0.3 {
+            continue;
+        }
+        let ch = chroma(c);
+        let dist = |colour: [f32; 3]| -> f32 {
+            let want = chroma(colour);
+            (0..3)
+                .map(|k| (ch[k] - want[k]).powi(2))
+                .sum::<f32>()
+                .sqrt()
+        };
+        let nearest = (0..palette.len())
+            .min_by(|&a, &b| dist(palette[a]).total_cmp(&dist(palette[b])))
+            .unwrap();
+        if dist(palette[nearest]) < 0.15 {
+            counts[nearest] += 1;
+        }
+    }
+    (lit, counts)
+}
+
 /// An Xvfb server of this test's own, stopped when dropped.
 struct Display {
     server: Child,
@@ -242,32 +279,8 @@ fn the_sandbox_renders_its_models() {
         ("bunny", [0.95, 0.80, 0.25]),
         ("grey", [0.5, 0.5, 0.5]),
     ];
-    let mut lit = 0usize;
-    let mut counts = [0usize; 6];
-    for (x, y, p) in img.enumerate_pixels() {
-        let c = [p.0[0], p.0[1], p.0[2]];
-        let bright = c.iter().sum::<f32>();
-        if bright > 0.45 {
-            lit += 1;
-        }
-        if !(320..1280).contains(&x) || !(150..600).contains(&y) || bright < 0.3 {
-            continue;
-        }
-        let ch = chroma(c);
-        let dist = |colour: [f32; 3]| -> f32 {
-            let want = chroma(colour);
-            (0..3)
-                .map(|k| (ch[k] - want[k]).powi(2))
-                .sum::<f32>()
-                .sqrt()
-        };
-        let nearest = (0..palette.len())
-            .min_by(|&a, &b| dist(palette[a].1).total_cmp(&dist(palette[b].1)))
-            .unwrap();
-        if dist(palette[nearest].1) < 0.15 {
-            counts[nearest] += 1;
-        }
-    }
+    let colours = palette.map(|(_, c)| c);
+    let (lit, counts) = colour_counts(&img, &colours, (320..1280, 150..600));
     let total = (img.width() * img.height()) as usize;
     assert!(
         lit > total / 50,
@@ -285,4 +298,86 @@ fn the_sandbox_renders_its_models() {
         );
     }
     let _ = std::fs::remove_file(&out);
+}
+
+/// A scan dropped on the window (through the windowing system's drop message) becomes a part that
+/// is fitted to it with its local DOFs and drawn in its colour; a file that cannot be read, dropped
+/// first, says why in the message line and adds nothing.
+#[test]
+fn a_scan_dropped_on_the_sandbox_is_fitted_and_a_bad_file_changes_nothing() {
+    if !renderer_available() {
+        return;
+    }
+    let tmp = std::env::temp_dir();
+    let out = tmp.join(format!("bdsq-drop-{}.png", std::process::id()));
+    let bad = tmp.join(format!("bdsq-drop-{}-bad.ply", std::process::id()));
+    std::fs::write(&bad, "garbage\n").unwrap();
+    let _ = std::fs::remove_file(&out);
+    let cow = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/data/cow_scan.obj");
+    let (shot, bad_s, cow_s) = (
+        out.display().to_string(),
+        bad.display().to_string(),
+        cow.display().to_string(),
+    );
+    let run = sandbox(
+        &tmp,
+        600,
+        &[
+            "scenes/sandbox.dsq.ron",
+            "--demo-drop",
+            &bad_s,
+            "--demo-drop",
+            &cow_s,
+            "--screenshot",
+            &shot,
+            "--exit-after-steps",
+            "300",
+        ],
+        &[("BEVY_ASSET_ROOT", env!("CARGO_MANIFEST_DIR"))],
+    );
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success() && out.exists(),
+        "{}: {stdout}",
+        run.status
+    );
+    let line = |start: &str| {
+        stdout
+            .lines()
+            .find(|l| l.starts_with(start))
+            .unwrap_or_else(|| panic!("no {start:?} in {stdout}"))
+            .to_string()
+    };
+    let bad_line = line(&format!("demo drop: {bad_s}:"));
+    assert!(
+        bad_line.contains("not added:") && bad_line.contains("magic number"),
+        "{bad_line}"
+    );
+    assert!(bad_line.ends_with("(parts 5 -> 5)"), "{bad_line}");
+    assert!(line(&format!("demo drop: {cow_s}:")).ends_with("(parts 5 -> 6)"));
+    let rest = line("demo drop: part cow_scan at rest:");
+    assert!(rest.contains("at rest: true, 2999 points"), "{rest}");
+    assert!(rest.ends_with("local DOFs: true"), "{rest}");
+    let mean: f64 = rest
+        .split("mean distance ")
+        .nth(1)
+        .and_then(|t| t.split(' ').next())
+        .and_then(|t| t.parse().ok())
+        .unwrap_or_else(|| panic!("{rest}"));
+    assert!(mean < 0.01, "{rest}");
+    // The new part (the sixth, in the palette's sixth colour) is in the picture.
+    let img = image::open(&out).expect("a PNG").to_rgb32f();
+    let palette = [
+        [0.90, 0.45, 0.20],
+        [0.25, 0.55, 0.90],
+        [0.35, 0.75, 0.35],
+        [0.85, 0.30, 0.55],
+        [0.95, 0.80, 0.25],
+        [0.55, 0.40, 0.85],
+        [0.5, 0.5, 0.5],
+    ];
+    let (_, counts) = colour_counts(&img, &palette, (320..1280, 0..720));
+    assert!(counts[5] > 3000, "the dropped scan's part: {counts:?}");
+    let _ = std::fs::remove_file(&out);
+    let _ = std::fs::remove_file(&bad);
 }

@@ -3,7 +3,6 @@
 //! kind of bad scene gives an error naming the file and the line or field.
 
 use bevy::asset::AssetPlugin;
-use bevy::ecs::schedule::ScheduleLabel;
 use bevy::prelude::*;
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
@@ -18,6 +17,10 @@ use bevy_deformable_sq::scene::{PartRun, SceneDef, SceneError, run_scene};
 use bevy_deformable_sq::synthetic;
 use glam::{DQuat, DVec2, DVec3};
 use std::path::{Path, PathBuf};
+
+#[path = "support/scene_app.rs"]
+mod scene_app;
+use scene_app::{Step, load, parts, scene_app};
 
 const SHIPPED: [(&str, usize); 9] = [
     ("egg", 1),
@@ -605,48 +608,6 @@ fn shared_sources_refuse_crops_and_mixed_placements_and_auto_needs_range_forces(
 
 // ---------------------------------------------------------------------------------------------
 // Through the plugin
-
-/// The schedule the simulation runs in, stepped by hand so that `update` only loads and spawns.
-#[derive(ScheduleLabel, Clone, Debug, PartialEq, Eq, Hash)]
-struct Step;
-
-fn scene_app(assets: &Path) -> App {
-    let mut app = App::new();
-    app.add_plugins((
-        MinimalPlugins,
-        AssetPlugin {
-            file_path: assets.display().to_string(),
-            ..default()
-        },
-        DeformableSqPlugin::in_schedule(Step),
-        DeformableSqScenePlugin,
-    ));
-    app.init_schedule(Step);
-    app
-}
-
-/// Spawns a root for `path` and updates until its parts are spawned or it failed (bounded).
-fn load(app: &mut App, path: &str) -> Entity {
-    let handle = app.world().resource::<AssetServer>().load(path.to_string());
-    let root = app.world_mut().spawn(DeformableSceneRoot(handle)).id();
-    for _ in 0..2000 {
-        app.update();
-        let instance = app.world().get::<SceneInstance>(root).unwrap();
-        if instance.spawned.is_some() || instance.error.is_some() {
-            return root;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(2));
-    }
-    panic!("{path} neither loaded nor failed");
-}
-
-fn parts(app: &App, root: Entity) -> Vec<Entity> {
-    app.world()
-        .get::<SceneInstance>(root)
-        .unwrap()
-        .parts
-        .clone()
-}
 
 fn shipped_assets() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("assets")

@@ -24,13 +24,18 @@ use super::{
 };
 use crate::model::dynamics::ModelState;
 use crate::model::forces::range::RangeForces;
-use crate::scene::{Forces, JointDef, PartDef, SCENE_EXTENSION, SceneData, SceneDef, SceneError};
+use crate::scene::{
+    CameraDef, Forces, JointDef, PartDef, SCENE_EXTENSION, SceneData, SceneDef, SceneError,
+};
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext, LoadState};
 use bevy::math::DVec3;
 use bevy::prelude::*;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+
+mod add;
+pub use add::{AddedFile, FilePlacement, add_file};
 
 /// A loaded scene: its definition and its data (points placed in the world, image potentials).
 #[derive(Asset, TypePath, Clone, Debug)]
@@ -118,6 +123,9 @@ pub struct SceneInstance {
     pub spawned: Option<AssetId<DeformableScene>>,
     /// Why the scene failed to load, if it did.
     pub error: Option<String>,
+    /// The scene camera last applied: a respawn moves the camera only when the scene's camera
+    /// changed, so a view the user has moved to stays.
+    camera: Option<CameraDef>,
 }
 
 /// A part spawned from a scene: its index in the scene's `parts`.
@@ -244,6 +252,7 @@ pub fn spawn_scenes(
     mut changes: MessageReader<AssetEvent<DeformableScene>>,
     mut roots: Query<(Entity, &DeformableSceneRoot, &mut SceneInstance)>,
     mut cameras: Query<&mut Transform, With<DeformableSceneCamera>>,
+    joints: Query<(Entity, &ChildOf), With<PartJoint>>,
 ) {
     let modified: Vec<AssetId<DeformableScene>> = changes
         .read()
@@ -268,6 +277,10 @@ pub fn spawn_scenes(
         };
         let instance = &mut *instance;
         for e in instance.parts.drain(..).chain(instance.images.drain(..)) {
+            commands.entity(e).try_despawn();
+        }
+        // The root's joints go with the parts they join; the scene's joints are made anew.
+        for (e, _) in joints.iter().filter(|(_, c)| c.parent() == root) {
             commands.entity(e).try_despawn();
         }
         let mut images: Vec<_> = scene.data.images.iter().collect();
@@ -303,6 +316,10 @@ pub fn spawn_scenes(
         instance.parts = spawned.into_iter().flatten().collect();
         instance.spawned = Some(id);
         instance.error = None;
+        if scene.def.camera == instance.camera {
+            continue;
+        }
+        instance.camera = scene.def.camera;
         if let Some(c) = &scene.def.camera {
             let eye = DVec3::from_array(c.eye).as_vec3();
             let target = DVec3::from_array(c.target).as_vec3();

@@ -104,6 +104,34 @@ impl Default for Placement {
     }
 }
 
+impl Placement {
+    /// The placement that scales `points` (file coordinates) uniformly, without turning them, so
+    /// that their centroid lands at `at` and their RMS distance from it is `radius`: their first
+    /// two moments. `None` for no points, non-finite ones, or points that all coincide.
+    pub fn framing(points: &[DVec3], at: DVec3, radius: f64) -> Option<Self> {
+        if points.is_empty() || !at.is_finite() || !(radius > 0.0 && radius.is_finite()) {
+            return None;
+        }
+        let n = points.len() as f64;
+        let centroid = points.iter().copied().sum::<DVec3>() / n;
+        let rms = (points
+            .iter()
+            .map(|p| p.distance_squared(centroid))
+            .sum::<f64>()
+            / n)
+            .sqrt();
+        if !(rms > 0.0 && rms.is_finite()) {
+            return None;
+        }
+        let scale = radius / rms;
+        Some(Self {
+            translation: (at - scale * centroid).to_array(),
+            rotation: Rotation::default(),
+            scale,
+        })
+    }
+}
+
 /// A rotation, as a quaternion or an axis and an angle.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -352,6 +380,22 @@ pub enum Forces {
         #[serde(default)]
         region: f64,
     },
+}
+
+impl Forces {
+    /// Range forces from the points of source `data`, with every other setting at its default
+    /// (as a scene that writes only `Range(data: "…")`).
+    pub fn range(data: impl Into<String>) -> Self {
+        Forces::Range {
+            data: data.into(),
+            beta: default_range_beta(),
+            coverage: default_coverage(),
+            influence: InfluenceMode::default(),
+            outliers: 0.0,
+            crop: None,
+            shared: false,
+        }
+    }
 }
 
 /// An axis-aligned box.

@@ -269,7 +269,7 @@ pub(super) fn lexical_absolute(p: &Path) -> PathBuf {
 }
 
 /// The path from directory `base` to `target` (both absolute and lexically normal).
-pub(super) fn relative_path(target: &Path, base: &Path) -> PathBuf {
+pub(crate) fn relative_path(target: &Path, base: &Path) -> PathBuf {
     let t: Vec<_> = target.components().collect();
     let b: Vec<_> = base.components().collect();
     let common = t.iter().zip(&b).take_while(|(x, y)| x == y).count();

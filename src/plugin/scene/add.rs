@@ -1,0 +1,226 @@
+//! Adding a data file to an open scene, as a file dropped on the window does: a scan becomes a
+//! part fitted to it, an image becomes a backdrop. The scene asset is replaced by the scene as it
+//! is now plus the file, so [`spawn_scenes`](super::spawn_scenes) respawns every part in its
+//! current state and [`save_scene`](super::save_scene) writes the file's source with the rest.
+
+use super::{DeformableScene, DeformableSceneRoot, scene_dir, scene_from_world};
+use crate::io::{decode_luminance, decode_points};
+use crate::model::fit::MIN_POINTS;
+use crate::model::forces::image::DEFAULT_SIGMA;
+use crate::scene::{
+    CameraDef, DataSource, Forces, PartDef, PartPlacement, Placement, SceneData, SceneDef,
+};
+use bevy::math::DVec3;
+use bevy::prelude::*;
+use std::path::{Path, PathBuf};
+
+/// Where [`add_file`] puts what it adds, in world space.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FilePlacement {
+    /// Where a point cloud's centroid goes; an image's centre is its x and y.
+    pub at: DVec3,
+    /// The RMS distance from their centroid that a cloud's points are scaled to.
+    pub radius: f64,
+    /// The world length of an image's longer side.
+    pub extent: f64,
+}
+
+/// What [`add_file`] added.
+#[derive(Clone, Debug, PartialEq)]
+pub enum AddedFile {
+    /// A part fitted to the file's points (a new scene part, placed `Auto`, with local DOFs).
+    Part {
+        /// The part's (and its data source's) name.
+        name: String,
+        /// How many points the file has.
+        points: usize,
+    },
+    /// An image source drawn as the backdrop in the world x–y plane; the scene's camera now faces
+    /// it.
+    Image {
+        /// The source's name.
+        name: String,
+        /// Its size in pixels.
+        size: (usize, usize),
+    },
+}
+
+/// Adds the file at `file` to the scene of `root`:
+/// - an OBJ or PLY file becomes a point source, placed by [`Placement::framing`] at
+///   `placement.at` with RMS radius `placement.radius`, and a part on it with range forces,
+///   placed `Auto` (from the points' moments) and given local DOFs, which the scene's
+///   [`FitDriver`](crate::plugin::FitDriver) fits to convergence;
+/// - a PNG or JPEG file becomes an image source centred at `placement.at`'s x and y, its longer
+///   side `placement.extent` long, with the scene's camera looking straight at it.
+///
+/// The scene asset is replaced by [`scene_from_world`] (every part as it is now, local
+/// displacements included) plus the file, so the scene respawns and `save_scene` writes it all.
+/// A file outside `assets_dir` is copied into `assets_dir/imported/` first, so the scene, saved,
+/// reopens through the asset server. A file that cannot be read or decoded, or has fewer than
+/// [`MIN_POINTS`] points, is an error naming it, and the scene is left as it was.
+pub fn add_file(
+    world: &mut World,
+    root: Entity,
+    file: &Path,
+    placement: FilePlacement,
+    assets_dir: &Path,
+) -> Result<AddedFile, String> {
+    let shown = file.display();
+    let kind = Kind::of(file).ok_or_else(|| {
+        format!("{shown}: not a point cloud (.obj, .ply) or an image (.png, .jpg, .jpeg)")
+    })?;
+    let bytes = std::fs::read(file).map_err(|e| format!("{shown}: cannot read: {e}"))?;
+    let mut def = scene_from_world(world, root, true)?;
+    let dir = scene_dir(world, root, assets_dir).ok_or("the scene has no file path")?;
+    let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("data");
+    let name = unused_name(&def, stem);
+    let added = match kind {
+        Kind::Points => {
+            let raw = decode_points(file, &bytes).map_err(|e| e.to_string())?;
+            if raw.len() < MIN_POINTS {
+                return Err(format!(
+                    "{shown}: {} points, and a fit needs at least {MIN_POINTS}",
+                    raw.len()
+                ));
+            }
+            let framing = Placement::framing(&raw, placement.at, placement.radius)
+                .ok_or_else(|| format!("{shown}: the points all coincide or are not finite"))?;
+            let path = source_path(file, &dir, assets_dir)?;
+            def.data.insert(
+                name.clone(),
+                DataSource::Points {
+                    path,
+                    placement: framing,
+                },
+            );
+            let mut part = PartDef::new(name.clone());
+            part.placement = PartPlacement::Auto;
+            part.forces = Forces::range(name.clone());
+            def.parts.push(part);
+            AddedFile::Part {
+                name,
+                points: raw.len(),
+            }
+        }
+        Kind::Image => {
+            let (w, h, _) = decode_luminance(file, &bytes).map_err(|e| e.to_string())?;
+            let path = source_path(file, &dir, assets_dir)?;
+            let center = [placement.at.x, placement.at.y];
+            def.data.insert(
+                name.clone(),
+                DataSource::Image {
+                    path,
+                    sigma: DEFAULT_SIGMA,
+                    center,
+                    extent: placement.extent,
+                },
+            );
+            // Straight on, as the image scenes look: the longer side fills about 70 % of a 45°
+            // view.
+            def.camera = Some(CameraDef {
+                eye: [center[0], center[1], 1.6 * placement.extent],
+                target: [center[0], center[1], 0.0],
+                up: [0.0, 1.0, 0.0],
+            });
+            AddedFile::Image { name, size: (w, h) }
+        }
+    };
+    let handle = &world
+        .get::<DeformableSceneRoot>(root)
+        .ok_or("not a scene root")?
+        .0;
+    let id = handle.id();
+    let scene_file = handle
+        .path()
+        .and_then(|p| p.path().file_name())
+        .map_or_else(|| dir.join("scene"), |n| dir.join(n));
+    def.validate(&scene_file).map_err(|e| e.to_string())?;
+    let data = SceneData::resolve(&def, &scene_file, |rel| {
+        std::fs::read(dir.join(rel)).map_err(|e| format!("cannot read {rel:?}: {e}"))
+    })
+    .map_err(|e| e.to_string())?;
+    def.apply_noise_stiffness(&data);
+    world
+        .resource_mut::<Assets<DeformableScene>>()
+        .insert(id, DeformableScene { def, data })
+        .map_err(|e| format!("the scene asset is gone: {e}"))?;
+    Ok(added)
+}
+
+/// The kinds of file [`add_file`] takes, by extension.
+enum Kind {
+    Points,
+    Image,
+}
+
+impl Kind {
+    fn of(file: &Path) -> Option<Kind> {
+        let ext = file.extension()?.to_str()?.to_ascii_lowercase();
+        match ext.as_str() {
+            "obj" | "ply" => Some(Kind::Points),
+            "png" | "jpg" | "jpeg" => Some(Kind::Image),
+            _ => None,
+        }
+    }
+}
+
+/// `stem`, or `stem 2`, `stem 3`, …: the first name no data source or part has.
+fn unused_name(def: &SceneDef, stem: &str) -> String {
+    let taken = |n: &str| def.data.contains_key(n) || def.parts.iter().any(|p| p.name == n);
+    (1..)
+        .map(|i| match i {
+            1 => stem.to_string(),
+            _ => format!("{stem} {i}"),
+        })
+        .find(|n| !taken(n))
+        .expect("an unbounded search finds a free name")
+}
+
+/// The path a scene in `dir` names `file` by: relative, when the file lies under `assets_dir`;
+/// otherwise the file is copied into `assets_dir/imported/` (under a name not yet taken there by
+/// another file) and named there.
+fn source_path(file: &Path, dir: &Path, assets_dir: &Path) -> Result<String, String> {
+    let canon = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let (file_c, assets_c) = (canon(file), canon(assets_dir));
+    let inside = if file_c.starts_with(&assets_c) {
+        file_c
+    } else {
+        import(file, &assets_c.join("imported"))?
+    };
+    let rel = crate::scene::relative_path(&inside, &canon(dir));
+    Ok(rel.to_string_lossy().replace('\\', "/"))
+}
+
+/// Copies `file` into `into` (made if missing), keeping its name unless another file has it; an
+/// identical copy already there is reused.
+fn import(file: &Path, into: &Path) -> Result<PathBuf, String> {
+    let fail = |e: std::io::Error| {
+        format!(
+            "cannot copy {} into {}: {e}",
+            file.display(),
+            into.display()
+        )
+    };
+    std::fs::create_dir_all(into).map_err(fail)?;
+    let name = file
+        .file_name()
+        .ok_or("the file has no name")?
+        .to_string_lossy();
+    let (stem, ext) = name.rsplit_once('.').unwrap_or((&name, ""));
+    let bytes = std::fs::read(file).map_err(fail)?;
+    for i in 1.. {
+        let candidate = match i {
+            1 => into.join(&*name),
+            _ => into.join(format!("{stem}_{i}.{ext}")),
+        };
+        match std::fs::read(&candidate) {
+            Ok(existing) if existing == bytes => return Ok(candidate),
+            Ok(_) => continue,
+            Err(_) => {
+                std::fs::write(&candidate, &bytes).map_err(fail)?;
+                return Ok(candidate);
+            }
+        }
+    }
+    unreachable!("an unbounded search ends")
+}

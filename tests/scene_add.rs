@@ -1,0 +1,246 @@
+//! Adding a data file to an open scene (`plugin::scene::add_file`, what a file dropped on the
+//! sandbox does): a scan becomes a part that is fitted to it, keeps the scene's joints and the
+//! user's view, and saves and reopens as it was; an image becomes the backdrop; a file that
+//! cannot be taken is an error naming it, and nothing changes.
+
+use bevy::prelude::*;
+use bevy_deformable_sq::model::fit::{bounding_diagonal, residuals};
+use bevy_deformable_sq::plugin::scene::{
+    AddedFile, DeformableScene, FilePlacement, SceneImage, add_file, save_scene,
+};
+use bevy_deformable_sq::plugin::world_positions;
+use bevy_deformable_sq::prelude::*;
+use bevy_deformable_sq::scene::SceneDef;
+use glam::DVec3;
+use std::path::{Path, PathBuf};
+
+#[path = "support/scene_app.rs"]
+mod scene_app;
+use scene_app::{Step, load, parts, scene_app};
+
+/// A folder of assets of this test's own, holding a copy of the shipped chain scene (four jointed
+/// links, no data files) in `scenes/`.
+fn assets_with_chain(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("bdsq-add-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("scenes")).unwrap();
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes/chain.dsq.ron");
+    std::fs::copy(shipped, dir.join("scenes/chain.dsq.ron")).unwrap();
+    dir
+}
+
+fn shipped_data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("assets/data")
+        .join(name)
+}
+
+fn scene_def(app: &App, root: Entity) -> SceneDef {
+    let handle = &app.world().get::<DeformableSceneRoot>(root).unwrap().0;
+    let scenes = app.world().resource::<Assets<DeformableScene>>();
+    scenes.get(handle.id()).unwrap().def.clone()
+}
+
+fn named(app: &mut App, name: &str) -> Option<Entity> {
+    let mut q = app.world_mut().query::<(Entity, &Name)>();
+    q.iter(app.world())
+        .find(|(_, n)| n.as_str() == name)
+        .map(|(e, _)| e)
+}
+
+fn joint_count(app: &mut App) -> usize {
+    let mut q = app.world_mut().query::<&PartJoint>();
+    q.iter(app.world()).count()
+}
+
+const PLACE: FilePlacement = FilePlacement {
+    at: DVec3::new(2.0, 0.6, 1.5),
+    radius: 0.4,
+    extent: 3.0,
+};
+
+#[test]
+fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
+    let dir = assets_with_chain("scan");
+    let mut app = scene_app(&dir);
+    let camera = app
+        .world_mut()
+        .spawn((Camera3d::default(), DeformableSceneCamera))
+        .id();
+    let root = load(&mut app, "scenes/chain.dsq.ron");
+    assert_eq!(joint_count(&mut app), 3);
+    // The user has moved the view since the scene placed the camera.
+    let view = Transform::from_xyz(-4.0, 3.0, 2.0).looking_at(Vec3::ZERO, Vec3::Y);
+    *app.world_mut().get_mut::<Transform>(camera).unwrap() = view;
+
+    let cow = shipped_data("cow_scan.obj");
+    let added = add_file(app.world_mut(), root, &cow, PLACE, &dir).unwrap();
+    let AddedFile::Part { name, points } = added else {
+        panic!("a scan made {added:?}");
+    };
+    assert_eq!(name, "cow_scan");
+    // The scan lies outside the assets, so it was imported there (a scene names assets only).
+    let imported = dir.join("imported/cow_scan.obj");
+    assert_eq!(
+        std::fs::read(&imported).unwrap(),
+        std::fs::read(&cow).unwrap()
+    );
+
+    for _ in 0..50 {
+        app.update();
+    }
+    assert_eq!(
+        parts(&app, root).len(),
+        5,
+        "the chain's four links and the scan"
+    );
+    assert_eq!(
+        joint_count(&mut app),
+        3,
+        "the joints were made anew, not doubled"
+    );
+    assert_eq!(*app.world().get::<Transform>(camera).unwrap(), view);
+
+    // Placed from the points' moments: centroid at `at`, RMS radius `radius`.
+    let e = named(&mut app, &name).expect("the scan's part");
+    let pts = app
+        .world()
+        .get::<RangeData>(e)
+        .unwrap()
+        .forces
+        .points()
+        .to_vec();
+    assert_eq!(pts.len(), points);
+    let centroid = pts.iter().copied().sum::<DVec3>() / pts.len() as f64;
+    let rms = (pts
+        .iter()
+        .map(|p| p.distance_squared(centroid))
+        .sum::<f64>()
+        / pts.len() as f64)
+        .sqrt();
+    assert!(centroid.distance(PLACE.at) < 1e-9, "{centroid}");
+    assert!((rms - PLACE.radius).abs() < 1e-9, "{rms}");
+
+    // Fitted to convergence with its local DOFs, onto the scan.
+    for _ in 0..20_000 {
+        let done = app.world().get::<FitDriver>(e).is_some_and(|d| d.is_done());
+        if done {
+            break;
+        }
+        app.world_mut().run_schedule(Step);
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let driver = app.world().get::<FitDriver>(e).unwrap();
+    assert!(driver.converged(), "{:?}", driver.error());
+    let w = app.world();
+    let (rigid, shape, local) = (
+        *w.get::<RigidState>(e).unwrap(),
+        *w.get::<GlobalShape>(e).unwrap(),
+        w.get::<LocalDofs>(e).unwrap().clone(),
+    );
+    let tess = w.get::<FemMesh>(e).unwrap().get().unwrap().clone();
+    let mut nodes = Vec::new();
+    world_positions(&tess, &rigid, &shape, &local, &mut nodes);
+    let r = residuals(&tess, &nodes, &pts);
+    assert!(
+        r.mean < 0.01 * bounding_diagonal(&pts),
+        "mean distance {} of a diagonal of {}",
+        r.mean,
+        r.diagonal
+    );
+    assert!(local.displacement.iter().any(|d| d.length() > 0.0));
+
+    // Saved and opened again: the same part, in the same state, on the same data.
+    save_scene(
+        app.world(),
+        root,
+        &dir.join("scenes/saved.dsq.ron"),
+        &dir,
+        true,
+    )
+    .unwrap();
+    let mut again = scene_app(&dir);
+    let root2 = load(&mut again, "scenes/saved.dsq.ron");
+    assert_eq!(parts(&again, root2).len(), 5);
+    assert_eq!(joint_count(&mut again), 3);
+    let e2 = named(&mut again, &name).unwrap();
+    let w2 = again.world();
+    assert_eq!(*w2.get::<RigidState>(e2).unwrap(), rigid);
+    assert_eq!(*w2.get::<GlobalShape>(e2).unwrap(), shape);
+    assert_eq!(*w2.get::<LocalDofs>(e2).unwrap(), local);
+    assert_eq!(w2.get::<RangeData>(e2).unwrap().forces.points(), &pts[..]);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_image_added_to_a_scene_becomes_the_backdrop_facing_the_camera() {
+    let dir = assets_with_chain("image");
+    let mut app = scene_app(&dir);
+    let camera = app
+        .world_mut()
+        .spawn((Camera3d::default(), DeformableSceneCamera))
+        .id();
+    let root = load(&mut app, "scenes/chain.dsq.ron");
+    let coins = shipped_data("coins.png");
+    let added = add_file(app.world_mut(), root, &coins, PLACE, &dir).unwrap();
+    assert_eq!(
+        added,
+        AddedFile::Image {
+            name: "coins".into(),
+            size: (384, 303)
+        }
+    );
+    for _ in 0..5 {
+        app.update();
+    }
+    let mut images = app.world_mut().query::<&SceneImage>();
+    let images: Vec<_> = images.iter(app.world()).collect();
+    assert_eq!(images.len(), 1);
+    assert_eq!(images[0].name, "coins");
+    assert_eq!(parts(&app, root).len(), 4);
+    // The camera looks straight down -z at the image's centre.
+    let t = app.world().get::<Transform>(camera).unwrap();
+    assert!(t.translation.abs_diff_eq(Vec3::new(2.0, 0.6, 4.8), 1e-5));
+    assert!(t.forward().abs_diff_eq(Vec3::NEG_Z, 1e-5));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_file_that_cannot_be_added_names_itself_and_changes_nothing() {
+    let dir = assets_with_chain("bad");
+    let mut app = scene_app(&dir);
+    let root = load(&mut app, "scenes/chain.dsq.ron");
+    let before = scene_def(&app, root);
+    let scratch = std::env::temp_dir().join(format!("bdsq-add-{}-files", std::process::id()));
+    std::fs::create_dir_all(&scratch).unwrap();
+    let write = |name: &str, text: &str| {
+        let p = scratch.join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    };
+    let cases = [
+        (write("garbage.ply", "garbage\n"), "magic number"),
+        (
+            write("three.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\n"),
+            "at least",
+        ),
+        (write("same.obj", &"v 1 2 3\n".repeat(20)), "coincide"),
+        (write("notes.txt", "hello"), "not a point cloud"),
+        (write("broken.png", "not a png"), "cannot decode"),
+        (scratch.join("missing.ply"), "cannot read"),
+    ];
+    for (file, why) in &cases {
+        let e = add_file(app.world_mut(), root, file, PLACE, &dir).unwrap_err();
+        let name = file.file_name().unwrap().to_string_lossy();
+        assert!(e.contains(&*name) && e.contains(why), "{e}");
+        assert!(!e.contains('\n'), "one line: {e}");
+    }
+    for _ in 0..5 {
+        app.update();
+    }
+    assert_eq!(scene_def(&app, root), before);
+    assert_eq!(parts(&app, root).len(), 4);
+    assert!(!dir.join("imported").exists(), "nothing was imported");
+    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(&scratch);
+}
