@@ -15,9 +15,10 @@ use bevy::picking::pointer::PointerButton;
 use bevy::prelude::*;
 use bevy_deformable_sq::model::image_fit::ellipsoid_from_points;
 use bevy_deformable_sq::model::joint::JointEnd;
-use bevy_deformable_sq::plugin::scene::{AddedFile, FilePlacement, add_file, save_scene};
+use bevy_deformable_sq::plugin::scene::{AddedFile, FilePlacement, add_file, add_part, save_scene};
 use bevy_deformable_sq::plugin::world_positions;
 use bevy_deformable_sq::prelude::*;
+use bevy_deformable_sq::scene::{Forces, PartDef, PartPlacement};
 use bevy_egui::input::EguiWantsInput;
 use bevy_egui::{EguiContexts, EguiPrimaryContextPass, egui};
 use glam::DVec3;
@@ -295,7 +296,9 @@ fn pick_joint_end(
 
 /// Placing a new part as the paper's user does (Fig. 6(a)): four clicks on the ground plane, or
 /// on the image plane when the scene has an image, give both ends of the major axis and of the
-/// minor axis; the part (an ellipsoid, no data) is spawned under the scene root.
+/// minor axis. On the ground the part (an ellipsoid, no data) is spawned under the scene root; on
+/// an image it joins the scene ([`add_part`]) placed by the clicks in the image's pixels and
+/// pulled by the image, so it fits the outline it was placed on and saves with the scene.
 fn place_part(
     mut sandbox: ResMut<Sandbox>,
     mut inspector: ResMut<InspectorState>,
@@ -303,7 +306,7 @@ fn place_part(
     egui: Res<EguiWantsInput>,
     window: Single<&Window>,
     camera: Single<(&Camera, &GlobalTransform)>,
-    images: Query<(), With<SceneImage>>,
+    images: Query<&SceneImage>,
     mut instances: Query<&mut SceneInstance>,
     mut gizmos: Gizmos,
     mut commands: Commands,
@@ -341,6 +344,28 @@ fn place_part(
         return;
     };
     let name = format!("part {}", instance.parts.len() + 1);
+    // On an image, the part is the scene's, pulled by the image (the paper's Fig. 6(a)).
+    if let Some(image) = images.iter().next() {
+        let px = p.map(|x| image.potential.to_pixel(x.truncate()).to_array());
+        let mut part = PartDef::new(name.clone());
+        part.placement = PartPlacement::Axes {
+            major: [px[0], px[1]],
+            minor: [px[2], px[3]],
+        };
+        part.forces = Forces::image(image.name.clone());
+        part.k = 31;
+        let root = root.expect("the instance is the root's");
+        commands.queue(move |w: &mut World| {
+            let assets = screenshot::assets_dir().0;
+            let message = match add_part(w, root, part, &assets) {
+                Ok(()) => format!("placed {name} on the image; it is pulled to its edges"),
+                Err(e) => format!("not placed: {e}"),
+            };
+            w.resource_mut::<InspectorState>().message = message;
+            w.resource_mut::<InspectorState>().select_name = Some(name);
+        });
+        return;
+    }
     let e = commands
         .spawn((
             Name::new(name.clone()),

@@ -5,12 +5,13 @@
 
 use bevy::prelude::*;
 use bevy_deformable_sq::model::fit::{bounding_diagonal, residuals};
+use bevy_deformable_sq::model::image_fit::PartAxes;
 use bevy_deformable_sq::plugin::scene::{
-    AddedFile, DeformableScene, FilePlacement, SceneImage, add_file, save_scene,
+    AddedFile, DeformableScene, FilePlacement, SceneImage, add_file, add_part, save_scene,
 };
 use bevy_deformable_sq::plugin::world_positions;
 use bevy_deformable_sq::prelude::*;
-use bevy_deformable_sq::scene::SceneDef;
+use bevy_deformable_sq::scene::{Forces, PartDef, PartPlacement, SceneDef};
 use glam::DVec3;
 use std::path::{Path, PathBuf};
 
@@ -243,4 +244,62 @@ fn a_file_that_cannot_be_added_names_itself_and_changes_nothing() {
     assert!(!dir.join("imported").exists(), "nothing was imported");
     let _ = std::fs::remove_dir_all(&dir);
     let _ = std::fs::remove_dir_all(&scratch);
+}
+
+/// Four clicks on an added image make a part of the scene pulled by that image, placed as the
+/// clicks say; clicks that give an axis no length are refused and change nothing.
+#[test]
+fn a_part_placed_on_an_added_image_is_pulled_by_it() {
+    let dir = assets_with_chain("placed");
+    let mut app = scene_app(&dir);
+    let root = load(&mut app, "scenes/chain.dsq.ron");
+    add_file(
+        app.world_mut(),
+        root,
+        &shipped_data("coins.png"),
+        PLACE,
+        &dir,
+    )
+    .unwrap();
+    for _ in 0..5 {
+        app.update();
+    }
+    // The first coin of the top row: centre (37, 54) px, radius about 21 px.
+    let (major, minor) = ([[16.0, 54.0], [58.0, 54.0]], [[37.0, 33.0], [37.0, 75.0]]);
+    let coin = |name: &str, major, minor| {
+        let mut part = PartDef::new(name);
+        part.placement = PartPlacement::Axes { major, minor };
+        part.forces = Forces::image("coins");
+        part.k = 15;
+        part
+    };
+    let flat = coin("flat", [[37.0, 54.0]; 2], minor);
+    let before = scene_def(&app, root);
+    let e = add_part(app.world_mut(), root, flat, &dir).unwrap_err();
+    assert!(e.contains("flat") && e.contains("cannot be placed"), "{e}");
+    assert_eq!(scene_def(&app, root), before);
+
+    add_part(app.world_mut(), root, coin("coin", major, minor), &dir).unwrap();
+    for _ in 0..5 {
+        app.update();
+    }
+    assert_eq!(parts(&app, root).len(), 5);
+    let e = named(&mut app, "coin").expect("the placed part");
+    assert!(
+        app.world().get::<ImageData>(e).is_some(),
+        "pulled by the image"
+    );
+    let mut images = app.world_mut().query::<&SceneImage>();
+    let potential = images.single(app.world()).unwrap().potential.clone();
+    let px = [major[0], major[1], minor[0], minor[1]].map(glam::DVec2::from_array);
+    let (translation, ..) = PartAxes::from_points(&potential, px).unwrap().pose();
+    let rigid = *app.world().get::<RigidState>(e).unwrap();
+    assert!(rigid.translation.distance(translation) < 1e-12);
+    // Pulled: it moves under the image's forces and stays finite.
+    for _ in 0..20 {
+        app.world_mut().run_schedule(Step);
+    }
+    let moved = *app.world().get::<RigidState>(e).unwrap();
+    assert!(moved.translation.is_finite() && moved != rigid);
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -35,7 +35,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 mod add;
-pub use add::{AddedFile, FilePlacement, add_file};
+pub use add::{AddedFile, FilePlacement, add_file, add_part};
 
 /// A loaded scene: its definition and its data (points placed in the world, image potentials).
 #[derive(Asset, TypePath, Clone, Debug)]

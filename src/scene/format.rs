@@ -398,6 +398,20 @@ impl Forces {
     }
 }
 
+impl Forces {
+    /// Image forces from source `data`, with every other setting at its default (as a scene that
+    /// writes only `Image(data: "…")`).
+    pub fn image(data: impl Into<String>) -> Self {
+        Forces::Image {
+            data: data.into(),
+            beta: default_image_beta(),
+            band: default_band(),
+            outline_only: yes(),
+            region: 0.0,
+        }
+    }
+}
+
 /// An axis-aligned box.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

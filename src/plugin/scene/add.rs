@@ -125,6 +125,36 @@ pub fn add_file(
             AddedFile::Image { name, size: (w, h) }
         }
     };
+    replace_scene(world, root, def, &dir)?;
+    Ok(added)
+}
+
+/// Adds `part` to the scene of `root` (its data sources must be the scene's already): a part
+/// placed by four clicks on a scene's image, say, with `Axes` in the image's pixels and
+/// [`Forces::image`]. As with [`add_file`], the scene asset is replaced by [`scene_from_world`]
+/// plus the part, so every part respawns as it is now and `save_scene` writes the new one. A part
+/// the scene rejects, or one that cannot be placed (a zero-length axis), is an error, and the
+/// scene is left as it was.
+pub fn add_part(
+    world: &mut World,
+    root: Entity,
+    part: PartDef,
+    assets_dir: &Path,
+) -> Result<(), String> {
+    let mut def = scene_from_world(world, root, true)?;
+    let dir = scene_dir(world, root, assets_dir).ok_or("the scene has no file path")?;
+    def.parts.push(part);
+    replace_scene(world, root, def, &dir)
+}
+
+/// Checks `def`, loads its data (paths relative to `dir`), checks that its last part can be
+/// placed, and makes it the scene asset of `root`, which then respawns.
+fn replace_scene(
+    world: &mut World,
+    root: Entity,
+    mut def: SceneDef,
+    dir: &Path,
+) -> Result<(), String> {
     let handle = &world
         .get::<DeformableSceneRoot>(root)
         .ok_or("not a scene root")?
@@ -139,12 +169,17 @@ pub fn add_file(
         std::fs::read(dir.join(rel)).map_err(|e| format!("cannot read {rel:?}: {e}"))
     })
     .map_err(|e| e.to_string())?;
+    if let Some(last) = def.parts.last()
+        && data.initial_state(&def, def.parts.len() - 1).is_none()
+    {
+        let name = &last.name;
+        return Err(format!("part {name:?} cannot be placed where it was asked"));
+    }
     def.apply_noise_stiffness(&data);
     world
         .resource_mut::<Assets<DeformableScene>>()
         .insert(id, DeformableScene { def, data })
-        .map_err(|e| format!("the scene asset is gone: {e}"))?;
-    Ok(added)
+        .map_err(|e| format!("the scene asset is gone: {e}"))
 }
 
 /// The kinds of file [`add_file`] takes, by extension.
