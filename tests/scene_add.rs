@@ -30,6 +30,19 @@ fn assets_with_chain(name: &str) -> PathBuf {
     dir
 }
 
+/// An app on a copy of the chain scene in assets of its own (see [`assets_with_chain`]), with a
+/// scene camera: the assets folder, the app, the camera and the scene's root.
+fn chain_app(name: &str) -> (PathBuf, App, Entity, Entity) {
+    let dir = assets_with_chain(name);
+    let mut app = scene_app(&dir);
+    let camera = app
+        .world_mut()
+        .spawn((Camera3d::default(), DeformableSceneCamera))
+        .id();
+    let root = load(&mut app, "scenes/chain.dsq.ron");
+    (dir, app, camera, root)
+}
+
 fn shipped_data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("assets/data")
@@ -62,13 +75,7 @@ const PLACE: FilePlacement = FilePlacement {
 
 #[test]
 fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
-    let dir = assets_with_chain("scan");
-    let mut app = scene_app(&dir);
-    let camera = app
-        .world_mut()
-        .spawn((Camera3d::default(), DeformableSceneCamera))
-        .id();
-    let root = load(&mut app, "scenes/chain.dsq.ron");
+    let (dir, mut app, camera, root) = chain_app("scan");
     assert_eq!(joint_count(&mut app), 3);
     // The user has moved the view since the scene placed the camera.
     let view = Transform::from_xyz(-4.0, 3.0, 2.0).looking_at(Vec3::ZERO, Vec3::Y);
@@ -175,13 +182,7 @@ fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
 
 #[test]
 fn an_image_added_to_a_scene_becomes_the_backdrop_facing_the_camera() {
-    let dir = assets_with_chain("image");
-    let mut app = scene_app(&dir);
-    let camera = app
-        .world_mut()
-        .spawn((Camera3d::default(), DeformableSceneCamera))
-        .id();
-    let root = load(&mut app, "scenes/chain.dsq.ron");
+    let (dir, mut app, camera, root) = chain_app("image");
     let coins = shipped_data("coins.png");
     let added = add_file(app.world_mut(), root, &coins, PLACE, &dir).unwrap();
     assert_eq!(

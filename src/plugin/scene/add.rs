@@ -202,13 +202,12 @@ impl Kind {
 /// `stem`, or `stem 2`, `stem 3`, …: the first name no data source or part has.
 fn unused_name(def: &SceneDef, stem: &str) -> String {
     let taken = |n: &str| def.data.contains_key(n) || def.parts.iter().any(|p| p.name == n);
-    (1..)
-        .map(|i| match i {
-            1 => stem.to_string(),
-            _ => format!("{stem} {i}"),
-        })
-        .find(|n| !taken(n))
-        .expect("an unbounded search finds a free name")
+    let (mut name, mut i) = (stem.to_string(), 1);
+    while taken(&name) {
+        i += 1;
+        name = format!("{stem} {i}");
+    }
+    name
 }
 
 /// The path a scene in `dir` names `file` by: relative, when the file lies under `assets_dir`;
@@ -243,19 +242,19 @@ fn import(file: &Path, into: &Path) -> Result<PathBuf, String> {
         .to_string_lossy();
     let (stem, ext) = name.rsplit_once('.').unwrap_or((&name, ""));
     let bytes = std::fs::read(file).map_err(fail)?;
-    for i in 1.. {
+    let mut i = 1;
+    loop {
         let candidate = match i {
             1 => into.join(&*name),
             _ => into.join(format!("{stem}_{i}.{ext}")),
         };
         match std::fs::read(&candidate) {
             Ok(existing) if existing == bytes => return Ok(candidate),
-            Ok(_) => continue,
+            Ok(_) => i += 1,
             Err(_) => {
                 std::fs::write(&candidate, &bytes).map_err(fail)?;
                 return Ok(candidate);
             }
         }
     }
-    unreachable!("an unbounded search ends")
 }
