@@ -300,20 +300,37 @@ pub struct CloudRecipe {
     pub kept: f64,
     /// Gaussian noise per coordinate, as a fraction of the largest semi-axis.
     pub noise: f64,
-    /// Fraction of all points that are outliers, uniform in the inliers' bounding box grown by a
-    /// fifth on every side.
+    /// Fraction of all points that are outliers.
     pub outliers: f64,
+    /// Where the outliers are drawn.
+    pub outlier_spread: OutlierSpread,
+    /// The range ε1 and ε2 are drawn from, uniformly.
+    pub epsilon: [f64; 2],
+}
+
+/// How [`ground_truth_cloud`] spreads its outliers.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum OutlierSpread {
+    /// Uniform in the inliers' bounding box grown by a fifth on every side (EMS's).
+    #[default]
+    Uniform,
+    /// Gaussian about the inliers' centroid, with the standard deviation along each world axis
+    /// half the inliers' extent along it: dense inside and near the object, thin far from it.
+    Gaussian,
 }
 
 impl Default for CloudRecipe {
     /// 1000 surface points, 60 % of the surface, noise 1 % of the largest semi-axis, 20 %
-    /// outliers (EMS's hardest synthetic setting has a partial view, noise and outliers together).
+    /// outliers uniform in a box, exponents in [0.2, 1.8] (EMS's hardest synthetic setting has a
+    /// partial view, noise and outliers together).
     fn default() -> Self {
         Self {
             surface_points: 1000,
             kept: 0.6,
             noise: 0.01,
             outliers: 0.2,
+            outlier_spread: OutlierSpread::Uniform,
+            epsilon: [0.2, 1.8],
         }
     }
 }
@@ -325,6 +342,8 @@ pub struct GroundTruthCloud {
     pub truth: InitialPose,
     /// Surface points (noisy) followed by outliers.
     pub points: Vec<DVec3>,
+    /// The surface points before noise: samples of the seen part of the true surface.
+    pub surface: Vec<DVec3>,
     /// How many of `points` are outliers (the last ones).
     pub outliers: usize,
 }
@@ -370,7 +389,7 @@ fn unit_vector(rng: &mut Rng) -> DVec3 {
 }
 
 /// A cloud from a random superquadric, generated as EMS's paper tests its fitter: semi-axes
-/// uniform in [0.5, 3], ε1 and ε2 uniform in [0.2, 1.8], a uniformly random rotation and a
+/// uniform in [0.5, 3], ε1 and ε2 uniform in `recipe.epsilon` (EMS's [0.2, 1.8] by default), a uniformly random rotation and a
 /// translation in [−1, 1]³; surface points drawn uniformly by area, the part on one side of a
 /// random plane kept (`recipe.kept` of them), Gaussian noise, then uniform outliers. Deterministic
 /// in `seed`.
@@ -383,8 +402,8 @@ pub fn ground_truth_cloud(seed: u64, recipe: &CloudRecipe) -> GroundTruthCloud {
         a1: axes[0] / a,
         a2: axes[1] / a,
         a3: axes[2] / a,
-        e1: rng.range(0.2, 1.8),
-        e2: rng.range(0.2, 1.8),
+        e1: rng.range(recipe.epsilon[0], recipe.epsilon[1]),
+        e2: rng.range(recipe.epsilon[0], recipe.epsilon[1]),
     };
     let q = unit_vector(&mut rng);
     let rotation = DQuat::from_axis_angle(q, rng.range(0.0, 2.0 * PI)).normalize();
@@ -399,24 +418,34 @@ pub fn ground_truth_cloud(seed: u64, recipe: &CloudRecipe) -> GroundTruthCloud {
     surface.sort_by(|p, q| q.dot(view).total_cmp(&p.dot(view)));
     surface.truncate(recipe.surface_points);
     let sigma = recipe.noise * a;
+    let surface: Vec<DVec3> = surface
+        .iter()
+        .map(|p| translation + rotation * *p)
+        .collect();
     let mut points: Vec<DVec3> = surface
         .iter()
-        .map(|p| {
-            translation
-                + rotation * *p
-                + sigma * DVec3::new(rng.normal(), rng.normal(), rng.normal())
-        })
+        .map(|p| *p + sigma * DVec3::new(rng.normal(), rng.normal(), rng.normal()))
         .collect();
     let (lo, hi) = points.iter().fold(
         (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
         |(lo, hi), p| (lo.min(*p), hi.max(*p)),
     );
-    let grow = 0.2 * (hi - lo);
     let ratio = recipe.outliers.clamp(0.0, 0.9);
     let outliers = (ratio / (1.0 - ratio) * recipe.surface_points as f64).round() as usize;
+    let centroid = points.iter().sum::<DVec3>() / points.len().max(1) as f64;
     for _ in 0..outliers {
-        let t = DVec3::new(rng.uniform(), rng.uniform(), rng.uniform());
-        points.push(lo - grow + t * (hi - lo + 2.0 * grow));
+        let p = match recipe.outlier_spread {
+            OutlierSpread::Uniform => {
+                let grow = 0.2 * (hi - lo);
+                let t = DVec3::new(rng.uniform(), rng.uniform(), rng.uniform());
+                lo - grow + t * (hi - lo + 2.0 * grow)
+            }
+            OutlierSpread::Gaussian => {
+                let g = DVec3::new(rng.normal(), rng.normal(), rng.normal());
+                centroid + 0.5 * (hi - lo) * g
+            }
+        };
+        points.push(p);
     }
     GroundTruthCloud {
         truth: InitialPose {
@@ -425,8 +454,34 @@ pub fn ground_truth_cloud(seed: u64, recipe: &CloudRecipe) -> GroundTruthCloud {
             shape,
         },
         points,
+        surface,
         outliers,
     }
+}
+
+/// Cloud `i` of the generated set the fitter's defaults are swept on (`cargo bench --bench
+/// sweep`), with its recipe: 2000 surface points; four outlier fractions (0, 10, 20 and 40 %),
+/// four noise levels (0, 1, 3 and 5 % of the largest semi-axis), three views (the whole
+/// surface, 60 % and 40 % of it) and both outlier spreads, interleaved so that any 32
+/// consecutive clouds meet every outlier fraction with every noise level and spread, and any 12
+/// every outlier fraction with every view; exponents over [0.1, 1.9].
+pub fn sweep_cloud(i: u64) -> (CloudRecipe, GroundTruthCloud) {
+    const OUTLIERS: [f64; 4] = [0.0, 0.1, 0.2, 0.4];
+    const NOISE: [f64; 4] = [0.0, 0.01, 0.03, 0.05];
+    const KEPT: [f64; 3] = [1.0, 0.6, 0.4];
+    let recipe = CloudRecipe {
+        surface_points: 2000,
+        kept: KEPT[(i % 3) as usize],
+        noise: NOISE[((i / 4) % 4) as usize],
+        outliers: OUTLIERS[(i % 4) as usize],
+        outlier_spread: if (i / 16).is_multiple_of(2) {
+            OutlierSpread::Uniform
+        } else {
+            OutlierSpread::Gaussian
+        },
+        epsilon: [0.1, 1.9],
+    };
+    (recipe, ground_truth_cloud(1000 + i, &recipe))
 }
 
 /// How far a fitted superquadric is from the ground truth, after matching the two by the

@@ -4,7 +4,10 @@
 //! Fitting a superquadric is a problem of many local minima: which data axis is the model's z,
 //! a square section or its 45° dual, a box that sandwiches a one-view scan or a disc that lies
 //! on it. [`solve`] runs two searches side by side on a subsample and keeps the fit whose
-//! surface lies closest to the points (the plain mean distance, the measure a user reads):
+//! surface explains the points best. Every comparison of fits (starts, candidates, the two
+//! searches) is by [`Mixture::score`]: the negative log-likelihood of the points under the
+//! Gaussian–uniform mixture that weighs them, at each fit's own σ². A plain mean distance would
+//! prefer a surface that passes through the outliers to one on the inliers:
 //!
 //! - **from the starts** (`probe_and_continue`): each start gets [`PROBE_ROUNDS`] EM rounds
 //!   of the radial distance, the best goes on to rest, and its similarity candidates are
@@ -85,34 +88,34 @@ pub fn spread_sample(points: &[DVec3], count: usize) -> Vec<DVec3> {
 /// 0.1 % (hippo scan: 1.760e-2 with two, 1.761e-2 with 17) at 2.3 times the cost.
 pub const FINE_ROUNDS: u32 = 2;
 
-/// The mean of |[`super::super::distance::normal_distance`]| of `points` from `pose`: how the
-/// searches rank starts, placed fits and candidates. One gauge a point, and the surface distance
-/// to first order, so comparable between fits whatever their weights or metric.
-pub fn score(pose: &InitialPose, points: &[DVec3]) -> f64 {
-    let sum: f64 = points
+/// [`Mixture::score`] of the [`super::super::distance::normal_distance`]s of `points` from
+/// `pose`: how the searches rank starts, placed fits and candidates. One gauge a point, and the
+/// surface distance to first order, so comparable between fits whatever their weights or metric.
+pub fn score(pose: &InitialPose, points: &[DVec3], mixture: &Mixture) -> f64 {
+    let d: Vec<f64> = points
         .iter()
-        .map(|p| super::super::distance::normal_distance(pose, *p).abs())
-        .sum();
-    sum / points.len().max(1) as f64
+        .map(|p| super::super::distance::normal_distance(pose, *p))
+        .collect();
+    mixture.score(&d)
 }
 
-/// The mean exact distance of `points` from `pose`'s surface: how [`solve`] chooses between its
-/// two searches, and how the placed fits are ranked.
-fn mean_surface_distance(pose: &InitialPose, points: &[DVec3]) -> f64 {
-    let sum: f64 = points
+/// [`Mixture::score`] of the exact distances of `points` from `pose`'s surface: how [`solve`]
+/// chooses between its two searches, and how the placed fits are ranked.
+fn surface_score(pose: &InitialPose, points: &[DVec3], mixture: &Mixture) -> f64 {
+    let d: Vec<f64> = points
         .iter()
-        .map(|p| super::super::distance::surface_distance(pose, *p).abs())
-        .sum();
-    sum / points.len().max(1) as f64
+        .map(|p| super::super::distance::surface_distance(pose, *p))
+        .collect();
+    mixture.score(&d)
 }
 
 /// The indices of `poses` in the order of their [`score`], least first; poses whose score is
 /// not finite are dropped. Ties keep the given order.
-fn in_score_order(poses: &[InitialPose], points: &[DVec3]) -> Vec<usize> {
+fn in_score_order(poses: &[InitialPose], points: &[DVec3], mixture: &Mixture) -> Vec<usize> {
     let mut scored: Vec<(f64, usize)> = poses
         .iter()
         .enumerate()
-        .map(|(i, p)| (score(p, points), i))
+        .map(|(i, p)| (score(p, points, mixture), i))
         .filter(|(s, _)| s.is_finite())
         .collect();
     scored.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -137,7 +140,7 @@ fn probe_and_continue(
     };
     let run = |start: &InitialPose, _: &mut dyn FnMut(&FitProgress)| {
         let fit = fit_em(points, start, sigma2, &probe);
-        let s = score(&fit.pose, points);
+        let s = score(&fit.pose, points, &opts.mixture);
         (fit, s, *start)
     };
     let runs = run_parallel(starts, run, &mut |_| {});
@@ -156,7 +159,7 @@ fn probe_and_continue(
             ..fit_em(points, &fit.pose, fit.sigma2, &rest)
         };
         iterations += fit.iterations;
-        s = score(&fit.pose, points);
+        s = score(&fit.pose, points, &opts.mixture);
     }
     Some(((fit, s, start), iterations))
 }
@@ -178,15 +181,15 @@ fn switch(
         ..*opts
     };
     let mut steps = 0;
-    for i in in_score_order(candidates, points) {
+    for i in in_score_order(candidates, points, &opts.mixture) {
         let trial = fit_em(points, &candidates[i], sigma2, &probe);
         steps += trial.iterations;
-        if !(score(&trial.pose, points) < least) {
+        if !(score(&trial.pose, points, &opts.mixture) < least) {
             continue;
         }
         let fit = fit_em(points, &trial.pose, trial.sigma2, opts);
         steps += fit.iterations;
-        let s = score(&fit.pose, points);
+        let s = score(&fit.pose, points, &opts.mixture);
         if s < least {
             return (Some((fit, s, i)), steps);
         }
@@ -227,7 +230,7 @@ fn search_from_starts(s: &Search) -> Option<(Scored, u32)> {
     }
     let fit = fit_em(s.points, &best.pose, best.sigma2, s.opts);
     iterations += fit.iterations;
-    let least = score(&fit.pose, s.points);
+    let least = score(&fit.pose, s.points, &s.opts.mixture);
     Some(((fit, least, start), iterations))
 }
 
@@ -249,7 +252,7 @@ fn placed_search(s: &Search) -> Option<(Scored, u32)> {
         let placed = fit_em_with(points, start, s.sigma2, &placing, coverage.as_ref());
         let fit = fit_em(points, &placed.pose, placed.sigma2, &free);
         let iterations = placed.iterations + fit.iterations;
-        let d = mean_surface_distance(&fit.pose, points);
+        let d = surface_score(&fit.pose, points, &s.opts.mixture);
         (fit, d, *start, iterations)
     };
     let mut fits = run_parallel(s.starts, run, &mut |_| {});
@@ -261,7 +264,7 @@ fn placed_search(s: &Search) -> Option<(Scored, u32)> {
     let (first, rest) = fits.split_first()?;
     let mut best = fit_em(points, &first.0.pose, first.0.sigma2, s.opts);
     iterations += best.iterations;
-    let mut least = score(&best.pose, points);
+    let mut least = score(&best.pose, points, &s.opts.mixture);
     let mut start = first.2;
     // The other placed starts are candidates of the first switch (each with its start).
     let mut pending: Vec<(InitialPose, InitialPose)> =
@@ -285,8 +288,8 @@ fn placed_search(s: &Search) -> Option<(Scored, u32)> {
 /// Fits a superquadric to `all_points` from `starts` (see the module docs): the two searches
 /// side by side on [`coarse_sample`]`(all_points)` with `opts` (each phase sets its own
 /// metric: the options' is not used), from inlier variance `sigma2`, each trying the `candidates` of its
-/// fits (similarity candidates) at most `max_switches` times; the fit nearer the subsample by
-/// the mean surface distance (the first search's on a tie), then polished for at most
+/// fits (similarity candidates) at most `max_switches` times; the fit that explains the
+/// subsample better by [`Mixture::score`] of its surface distances (the first search's on a tie), then polished for at most
 /// [`FINE_ROUNDS`] rounds on every point (on [`FINE_POINTS`] of them spread through a larger
 /// cloud; [`LmFit::weights`] are then those points', and [`LmFit::converged`] says whether the
 /// search came to rest). `None` when no start gives a finite fit.
@@ -324,7 +327,7 @@ pub fn solve(
     let mut best: Option<(f64, LmFit, InitialPose)> = None;
     for ((fit, _, start), spent) in found.into_iter().flatten() {
         iterations += spent;
-        let d = mean_surface_distance(&fit.pose, &sample);
+        let d = surface_score(&fit.pose, &sample, &opts.mixture);
         if d.is_finite() && best.as_ref().is_none_or(|b| d < b.0) {
             best = Some((d, fit, start));
         }
@@ -352,7 +355,7 @@ pub fn solve(
 /// The carrier a fit with local DOFs may start its membrane from instead of the fitted
 /// superquadric: an ellipsoid (exponents held at the starts', 1 for moments starts) placed from
 /// each of `starts` with the [`Coverage`] term and then fitted without it, the one nearest the
-/// points of [`coarse_sample`]`(all_points)` by the mean surface distance. A superquadric fitted
+/// points of [`coarse_sample`]`(all_points)` by [`Mixture::score`]. A superquadric fitted
 /// alone can take exponents near their bounds (a box, an octahedron) whose tessellation crowds
 /// its nodes onto edges and corners, and a membrane on it reaches the points badly; a rounder
 /// carrier spreads them evenly. `None` when no start gives a finite fit.
@@ -379,7 +382,14 @@ pub fn ellipsoid_carrier(
     let run = |start: &InitialPose, _: &mut dyn FnMut(&FitProgress)| {
         let placed = fit_em_with(points, start, sigma2, &placing, coverage.as_ref());
         let fit = fit_em(points, &placed.pose, placed.sigma2, &fitting);
-        let d = mean_surface_distance(&fit.pose, points);
+        let d = surface_score(
+            &fit.pose,
+            points,
+            &Mixture {
+                outlier_ratio: 0.0,
+                ..opts.mixture
+            },
+        );
         (fit, d)
     };
     run_parallel(starts, run, &mut |_| {})

@@ -147,7 +147,11 @@ fn the_solve_recovers_the_truth_from_a_far_start_and_a_near_one() {
     for starts in [vec![far, truth], vec![far]] {
         let s = solve(&points, &starts, 0.05, &options(0.0), |_| Vec::new(), 2).unwrap();
         assert!(starts.contains(&s.start));
-        assert!(score(&s.fit.pose, &points) < 1e-6, "{:?}", s.fit.pose);
+        assert!(
+            mean_surface(&s.fit.pose, &points) < 1e-6,
+            "{:?}",
+            s.fit.pose
+        );
         assert!(s.fit.pose.shape.is_finite() && s.fit.cost.is_finite());
     }
     // An empty set of starts has no solution, and no panic.
@@ -212,4 +216,32 @@ fn an_exponent_on_its_bound_stays_there_while_the_rest_converge() {
         "{axes} vs {}",
         truth.shape.semi_axes()
     );
+}
+
+#[test]
+fn the_mixture_score_prefers_the_surface_of_the_inliers_where_the_plain_mean_does_not() {
+    let mixture = Mixture {
+        outlier_ratio: 0.2,
+        outlier_density: 1.0 / 8.0,
+        sigma2_floor: 1e-10,
+    };
+    let mut rng = crate::synthetic::Rng::new(4);
+    // 600 inliers with noise 0.01 about surface A and 400 outliers 0.6 away from it; surface B
+    // passes between them, every point 0.2 from it.
+    let mut on_a: Vec<f64> = (0..600).map(|_| 0.01 * rng.normal()).collect();
+    on_a.extend((0..400).map(|_| 0.6 + 0.05 * rng.normal()));
+    let on_b: Vec<f64> = (0..1000)
+        .map(|i| if i % 2 == 0 { 0.2 } else { -0.2 })
+        .collect();
+    let plain = |d: &[f64]| d.iter().map(|x| x.abs()).sum::<f64>() / d.len() as f64;
+    assert!(plain(&on_b) < plain(&on_a));
+    let (a, b) = (mixture.score(&on_a), mixture.score(&on_b));
+    assert!(a.is_finite() && b.is_finite());
+    assert!(a < b, "surface A scores {a}, surface B {b}");
+    // Without an outlier model the score is the Gaussian's: the least mean square wins.
+    let gaussian = Mixture {
+        outlier_ratio: 0.0,
+        ..mixture
+    };
+    assert!(gaussian.score(&on_b) < gaussian.score(&on_a));
 }
