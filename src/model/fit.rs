@@ -27,6 +27,7 @@ pub use super::lm::Solver;
 use super::lm::{LmOptions, Metric, Mixture};
 use super::superquadric::SuperquadricParams;
 use crate::model::forces::nearest::kd_tree;
+use crate::model::parallel::run_parallel;
 use glam::DVec3;
 use kiddo::SquaredEuclidean;
 use std::f64::consts::SQRT_2;
@@ -118,51 +119,6 @@ pub fn max_motion(before: &[DVec3], after: &[DVec3]) -> f64 {
         .map(|(a, b)| a.distance_squared(*b))
         .fold(0.0, f64::max)
         .sqrt()
-}
-
-/// The most threads a fit starts for its axis hypotheses and similarity candidates: one for each
-/// up to this many (beyond that each thread takes the next one).
-pub const MAX_FIT_THREADS: usize = 8;
-
-/// Runs `job` on every item, each on a thread of its own (up to [`MAX_FIT_THREADS`]; beyond that
-/// each thread takes the next item), the calling thread among them and the only one that reports
-/// `progress`. Results come back in the items' order, so the outcome does not depend on the
-/// scheduling.
-///
-/// A thread an item rather than one a core: the items are a fit's three axis hypotheses or its
-/// three to five similarity candidates, of about equal length, and on two cores a worker a core
-/// runs three of them as two after one (the second core idle for the third), where the operating
-/// system's time slicing runs them side by side and finishes in about one and a half.
-pub(crate) fn run_parallel<I: Sync, R: Send>(
-    items: &[I],
-    job: impl Fn(&I, &mut dyn FnMut(&FitProgress)) -> R + Sync,
-    progress: &mut dyn FnMut(&FitProgress),
-) -> Vec<R> {
-    use std::sync::Mutex;
-    use std::sync::atomic::{AtomicUsize, Ordering};
-    let workers = items.len().min(MAX_FIT_THREADS);
-    let next = AtomicUsize::new(0);
-    let results: Mutex<Vec<(usize, R)>> = Mutex::new(Vec::with_capacity(items.len()));
-    let work = |progress: &mut dyn FnMut(&FitProgress)| {
-        loop {
-            let i = next.fetch_add(1, Ordering::Relaxed);
-            let Some(item) = items.get(i) else { break };
-            let r = job(item, progress);
-            results
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .push((i, r));
-        }
-    };
-    std::thread::scope(|scope| {
-        for _ in 1..workers {
-            scope.spawn(|| work(&mut |_: &FitProgress| {}));
-        }
-        work(progress);
-    });
-    let mut results = results.into_inner().unwrap_or_else(|e| e.into_inner());
-    results.sort_by_key(|(i, _)| *i);
-    results.into_iter().map(|(_, r)| r).collect()
 }
 
 /// Fits a deformable superquadric to `points`, calling `progress` as it goes (every 100 steps of

@@ -601,11 +601,11 @@ pub fn fit_image(
 ) -> Result<Vec<ImagePartFit>, StepError> {
     let tess = Tessellation::new(opts.k);
     let forces = opts.forces(potential);
-    // The parts side by side (as range parts are): a thread a part, up to `MAX_FIT_THREADS`.
-    super::fit::run_parallel(
+    // The parts side by side (as range parts are): a thread a part.
+    crate::model::parallel::run_parallel(
         initial,
         |axes, _| fit_part(&tess, &forces, axes.state(&tess), opts),
-        &mut |_| {},
+        &mut |_: &()| {},
     )
     .into_iter()
     .collect()

@@ -25,6 +25,7 @@ pub mod joint;
 pub mod linalg;
 pub mod lm;
 pub mod noise;
+mod parallel;
 pub mod parts;
 mod simd;
 pub mod superquadric;

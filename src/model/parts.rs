@@ -12,9 +12,10 @@
 use super::dynamics::ModelState;
 use super::fem::Tessellation;
 use super::fit::{
-    FitError, FitOptions, FitReport, Initialization, MIN_POINTS, fit, point_distances, run_parallel,
+    FitError, FitOptions, FitReport, Initialization, MIN_POINTS, fit, point_distances,
 };
 use super::init::InitialPose;
+use super::parallel::run_parallel;
 use glam::DVec3;
 
 /// k-means clusters of `points`: the cluster of each point. Seeds: the point farthest from the
@@ -263,7 +264,7 @@ fn members_of(points: &[DVec3], owner: &[usize], k: usize) -> Vec<Vec<DVec3>> {
 /// Fits every part to its points with its options, the parts side by side ([`run_parallel`]).
 fn fit_each(members: &[Vec<DVec3>], opts: &[FitOptions]) -> Result<Vec<FitReport>, FitError> {
     let jobs: Vec<(&Vec<DVec3>, &FitOptions)> = members.iter().zip(opts).collect();
-    run_parallel(&jobs, |(m, o), _| fit(m, o, |_| {}), &mut |_| {})
+    run_parallel(&jobs, |(m, o), _| fit(m, o, |_| {}), &mut |_: &()| {})
         .into_iter()
         .collect()
 }

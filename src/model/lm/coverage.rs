@@ -18,7 +18,8 @@
 //! one-view scan the term would pull the unseen side onto the seen one, so a fit uses it to place
 //! the model and then goes on without it, as the dynamics do.
 
-use super::{NUM_UNKNOWNS, Normal};
+use super::NUM_UNKNOWNS;
+use super::engine::Normal;
 use crate::model::fem::Tessellation;
 use crate::model::forces::nearest::kd_tree;
 use crate::model::init::InitialPose;
@@ -124,7 +125,7 @@ impl Coverage {
         pose: &InitialPose,
         weights: &[f64],
         total: f64,
-        n: &mut Normal,
+        n: &mut Normal<NUM_UNKNOWNS>,
     ) {
         for j in 0..self.trig.len() {
             let t = self.node(pose, j, true);
@@ -166,7 +167,8 @@ mod tests {
             .map(|i| 0.5 + (i % 3) as f64 * 0.25)
             .collect();
         let total: f64 = weights.iter().sum();
-        let mut n: Normal = ([[0.0; NUM_UNKNOWNS]; NUM_UNKNOWNS], [0.0; NUM_UNKNOWNS]);
+        let mut n: Normal<NUM_UNKNOWNS> =
+            ([[0.0; NUM_UNKNOWNS]; NUM_UNKNOWNS], [0.0; NUM_UNKNOWNS]);
         c.add_normal(&pose, &weights, total, &mut n);
         let h = 1e-7;
         for k in 0..NUM_UNKNOWNS {

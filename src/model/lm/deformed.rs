@@ -10,10 +10,13 @@
 //! theorem). The unknowns are the 11 of [`NUM_UNKNOWNS`] and the deformation
 //! (t_x, t_y, b_x, b_y): [`NUM_DEFORMED`].
 
-use super::*;
+use super::engine::{LmOptions, Problem, solve_em};
+use super::plain::{bounded_increment, on_bound};
 use crate::model::deform::{GlobalDeformation, NUM_DEFORM};
-use crate::model::distance::gauge;
-use glam::DMat3;
+use crate::model::distance::{NUM_UNKNOWNS, gauge};
+use crate::model::init::InitialPose;
+use crate::model::parallel::map_points;
+use glam::{DMat3, DVec3};
 
 /// Unknowns of a deformed fit: [`NUM_UNKNOWNS`] and the deformation's [`NUM_DEFORM`].
 pub const NUM_DEFORMED: usize = NUM_UNKNOWNS + NUM_DEFORM;
@@ -233,7 +236,6 @@ pub fn deformed_distances(p: &DeformedPose, points: &[DVec3]) -> Vec<f64> {
 /// Every point's foot on `p` (warm-started from `feet` when they are there, else from
 /// [`seed_rays`]) and its signed distance.
 fn feet_and_cost(p: &DeformedPose, points: &[DVec3], feet: &[Foot]) -> (Vec<Foot>, Vec<f64>) {
-    use rayon::prelude::*;
     let r = DMat3::from_quat(p.pose.rotation).transpose();
     let ys: Vec<DVec3> = points
         .iter()
@@ -244,27 +246,60 @@ fn feet_and_cost(p: &DeformedPose, points: &[DVec3], feet: &[Foot]) -> (Vec<Foot
     } else {
         seed_rays(p, &ys)
     };
-    let one = |(i, q): (usize, &DVec3)| {
+    let one = |i: usize| {
         let f = match feet.get(i) {
             Some(f) if cold.is_empty() => foot(p, ys[i], f.ray, FOOT_STEPS.1),
             _ => foot(p, ys[i], cold[i], FOOT_STEPS.0),
         };
-        (f, residual(p, *q, &f, None))
+        (f, residual(p, points[i], &f, None))
     };
-    let pairs: Vec<(Foot, f64)> = if points.len() >= PARALLEL_POINTS {
-        points.par_iter().enumerate().map(one).collect()
-    } else {
-        points.iter().enumerate().map(one).collect()
-    };
-    pairs.into_iter().unzip()
+    map_points(points.len(), one).into_iter().unzip()
 }
 
-/// Σ w e² of residuals `e` with weights `w` (1 each when empty).
-fn weighted(e: &[f64], w: &[f64]) -> f64 {
-    e.iter()
-        .enumerate()
-        .map(|(i, e)| w.get(i).copied().unwrap_or(1.0) * e * e)
-        .sum()
+/// The tapered and bent superquadric fitted to `points` (see the module docs), with the
+/// deformation coordinates (t_x, t_y, b_x, b_y) that `free` does not free held.
+struct Deformed<'a> {
+    points: &'a [DVec3],
+    opts: &'a LmOptions,
+    free: [bool; NUM_DEFORM],
+}
+
+impl Problem<NUM_DEFORMED> for Deformed<'_> {
+    type Model = DeformedPose;
+    type Foot = Foot;
+
+    fn len(&self) -> usize {
+        self.points.len()
+    }
+
+    fn evaluate(&self, p: &DeformedPose, hints: &[Foot]) -> (Vec<f64>, Vec<Foot>) {
+        let (feet, e) = feet_and_cost(p, self.points, hints);
+        (e, feet)
+    }
+
+    fn gradient(
+        &self,
+        p: &DeformedPose,
+        i: usize,
+        foot: Option<&Foot>,
+    ) -> Option<(f64, [f64; NUM_DEFORMED])> {
+        let mut g = [0.0; NUM_DEFORMED];
+        let r = residual(p, self.points[i], foot?, Some(&mut g));
+        Some((r, g))
+    }
+
+    fn moved(&self, p: &DeformedPose, delta: &[f64; NUM_DEFORMED]) -> DeformedPose {
+        moved(p, delta, self.opts)
+    }
+
+    fn on_bound(&self, p: &DeformedPose, k: usize) -> (bool, bool) {
+        on_bound(&p.pose, k, self.opts.max_semi_axis, self.opts.min_epsilon)
+    }
+
+    fn held(&self, k: usize) -> bool {
+        (self.opts.hold_exponents && (k == 3 || k == 4))
+            || (k >= NUM_UNKNOWNS && !self.free[k - NUM_UNKNOWNS])
+    }
 }
 
 /// Where [`fit_deformed`] came to rest.
@@ -280,10 +315,9 @@ pub struct DeformedFit {
     pub converged: bool,
 }
 
-/// EM rounds of Levenberg–Marquardt steps on the deformed surface from `start`, as [`fit_em`]
-/// runs them on the undeformed one (σ² from at least `sigma2` and the start's own spread);
-/// `free` says which deformation coordinates move
-/// (t_x, t_y, b_x, b_y); the others are held at the start's.
+/// The engine's EM rounds ([`super::engine`]) on the deformed surface from `start`, from an
+/// inlier variance of at least `sigma2` and the start's own spread; `free` says which
+/// deformation coordinates move (t_x, t_y, b_x, b_y); the others are held at the start's.
 pub fn fit_deformed(
     points: &[DVec3],
     start: &DeformedPose,
@@ -291,127 +325,21 @@ pub fn fit_deformed(
     opts: &LmOptions,
     free: [bool; NUM_DEFORM],
 ) -> DeformedFit {
-    let mixture = opts.mixture;
-    let robust = mixture.outlier_ratio > 0.0;
-    let mut pose = *start;
-    let (mut feet, mut e) = feet_and_cost(&pose, points, &[]);
-    // σ² at least the start's own spread: a start far from the points (a centreline's guess)
-    // would otherwise call most of them outliers and come to rest where it is.
-    let own = e.iter().map(|d| d * d).sum::<f64>() / (3.0 * e.len().max(1) as f64);
-    let mut sigma2 = sigma2.max(own).max(mixture.sigma2_floor);
-    let mut weights: Vec<f64> = Vec::new();
-    let mut lambda = INITIAL_DAMPING;
-    let (mut iterations, mut converged) = (0, false);
-    let mut previous = f64::INFINITY;
-    for _ in 0..opts.max_rounds {
-        if robust {
-            weights = e.iter().map(|&d| mixture.inlier(d, sigma2)).collect();
-        }
-        let mut cost = weighted(&e, &weights);
-        for _ in 0..opts.steps_per_round {
-            // The normal equations with the feet held.
-            let mut jtj = [[0.0; NUM_DEFORMED]; NUM_DEFORMED];
-            let mut jtr = [0.0; NUM_DEFORMED];
-            for (i, q) in points.iter().enumerate() {
-                let w = weights.get(i).copied().unwrap_or(1.0);
-                let mut g = [0.0; NUM_DEFORMED];
-                let r = residual(&pose, *q, &feet[i], Some(&mut g));
-                if !(w > 0.0) || !r.is_finite() || g.iter().any(|x| !x.is_finite()) {
-                    continue;
-                }
-                for a in 0..NUM_DEFORMED {
-                    jtr[a] += w * g[a] * r;
-                    for b in 0..=a {
-                        jtj[a][b] += w * g[a] * g[b];
-                    }
-                }
-            }
-            let held = |k: usize| {
-                (opts.hold_exponents && (k == 3 || k == 4))
-                    || (k >= NUM_UNKNOWNS && !free[k - NUM_UNKNOWNS])
-            };
-            for a in 0..NUM_DEFORMED {
-                for b in 0..a {
-                    jtj[b][a] = jtj[a][b];
-                }
-            }
-            for k in 0..NUM_DEFORMED {
-                if held(k) {
-                    for row in jtj.iter_mut() {
-                        row[k] = 0.0;
-                    }
-                    jtj[k] = [0.0; NUM_DEFORMED];
-                    jtj[k][k] = 1.0;
-                    jtr[k] = 0.0;
-                }
-            }
-            let scale = (0..NUM_DEFORMED).map(|a| jtj[a][a]).fold(0.0, f64::max);
-            let neg = jtr.map(|g| -g);
-            let mut step = None;
-            while lambda < 1e10 {
-                let mut damped = jtj;
-                for (a, row) in damped.iter_mut().enumerate() {
-                    row[a] += lambda * row[a] + 1e-12 * scale.max(f64::MIN_POSITIVE);
-                }
-                if let Some(delta) = cholesky_solve(&damped, &neg) {
-                    let quadratic: f64 = (0..NUM_DEFORMED)
-                        .map(|a| {
-                            delta[a] * (0..NUM_DEFORMED).map(|b| jtj[a][b] * delta[b]).sum::<f64>()
-                        })
-                        .sum();
-                    let predicted =
-                        2.0 * (0..NUM_DEFORMED).map(|a| delta[a] * neg[a]).sum::<f64>() - quadratic;
-                    if !(predicted > 0.1 * opts.tolerance * cost) {
-                        break;
-                    }
-                    let next = moved(&pose, &delta, opts);
-                    let (next_feet, next_e) = feet_and_cost(&next, points, &feet);
-                    let next_cost = weighted(&next_e, &weights);
-                    if next_cost < cost {
-                        lambda = (lambda / 3.0).max(1e-12);
-                        step = Some((next, next_feet, next_e, next_cost));
-                        break;
-                    }
-                }
-                lambda *= 4.0;
-            }
-            let Some((next, next_feet, next_e, next_cost)) = step else {
-                break;
-            };
-            iterations += 1;
-            let small = cost - next_cost <= opts.tolerance * 0.1 * next_cost;
-            (pose, feet, e, cost) = (next, next_feet, next_e, next_cost);
-            if small {
-                break;
-            }
-        }
-        let total: f64 = if robust {
-            weights.iter().sum()
-        } else {
-            points.len() as f64
-        };
-        if robust && total > 0.0 {
-            sigma2 = (cost / (3.0 * total)).max(mixture.sigma2_floor);
-        }
-        let at_floor = cost <= 0.01 * mixture.sigma2_floor * total;
-        if previous - cost < opts.tolerance * cost || at_floor {
-            converged = true;
-            break;
-        }
-        previous = cost;
-    }
-    let mean_distance = e.iter().map(|x| x.abs()).sum::<f64>() / e.len().max(1) as f64;
+    let problem = Deformed { points, opts, free };
+    let fit = solve_em(&problem, start, sigma2, true, opts);
+    let e = &fit.residuals;
     DeformedFit {
-        pose,
-        mean_distance,
-        iterations,
-        converged,
+        pose: fit.model,
+        mean_distance: e.iter().map(|x| x.abs()).sum::<f64>() / e.len().max(1) as f64,
+        iterations: fit.iterations,
+        converged: fit.converged,
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::lm::{Metric, Mixture};
     use crate::model::superquadric::SuperquadricParams;
 
     fn deformed() -> DeformedPose {

@@ -30,8 +30,10 @@
 //! Both searches end with the surface distance ([`Metric::Surface`]); the kept fit is then
 //! polished on every point (on [`FINE_POINTS`] of a larger cloud) for [`FINE_ROUNDS`] rounds.
 
-use super::*;
-use crate::model::fit::{FitProgress, run_parallel};
+use super::{Coverage, LmFit, LmOptions, Metric, Mixture, fit_em, fit_em_with};
+use crate::model::init::InitialPose;
+use crate::model::parallel::run_parallel;
+use glam::DVec3;
 
 /// The outcome of [`solve`].
 #[derive(Clone, Debug, PartialEq)]
@@ -138,12 +140,12 @@ fn probe_and_continue(
         max_rounds: PROBE_ROUNDS.min(opts.max_rounds),
         ..*opts
     };
-    let run = |start: &InitialPose, _: &mut dyn FnMut(&FitProgress)| {
+    let run = |start: &InitialPose, _: &mut dyn FnMut(&())| {
         let fit = fit_em(points, start, sigma2, &probe);
         let s = score(&fit.pose, points, &opts.mixture);
         (fit, s, *start)
     };
-    let runs = run_parallel(starts, run, &mut |_| {});
+    let runs = run_parallel(starts, run, &mut |_: &()| {});
     let mut iterations = runs.iter().map(|(f, _, _)| f.iterations).sum();
     let (mut fit, mut s, start) = runs
         .into_iter()
@@ -248,14 +250,14 @@ fn placed_search(s: &Search) -> Option<(Scored, u32)> {
         metric: Metric::Normal,
         ..*s.opts
     };
-    let run = |start: &InitialPose, _: &mut dyn FnMut(&FitProgress)| {
+    let run = |start: &InitialPose, _: &mut dyn FnMut(&())| {
         let placed = fit_em_with(points, start, s.sigma2, &placing, coverage.as_ref());
         let fit = fit_em(points, &placed.pose, placed.sigma2, &free);
         let iterations = placed.iterations + fit.iterations;
         let d = surface_score(&fit.pose, points, &s.opts.mixture);
         (fit, d, *start, iterations)
     };
-    let mut fits = run_parallel(s.starts, run, &mut |_| {});
+    let mut fits = run_parallel(s.starts, run, &mut |_: &()| {});
     let mut iterations: u32 = fits.iter().map(|f| f.3).sum();
     fits.retain(|f| f.1.is_finite());
     // Ranked by the exact distance: the placed fits are far apart, and their first-order
@@ -315,14 +317,14 @@ pub fn solve(
         max_switches,
     };
     let kinds = [true, false];
-    let run = |&from_starts: &bool, _: &mut dyn FnMut(&FitProgress)| {
+    let run = |&from_starts: &bool, _: &mut dyn FnMut(&())| {
         if from_starts {
             search_from_starts(&search)
         } else {
             placed_search(&search)
         }
     };
-    let found = run_parallel(&kinds, run, &mut |_| {});
+    let found = run_parallel(&kinds, run, &mut |_: &()| {});
     let mut iterations = 0;
     let mut best: Option<(f64, LmFit, InitialPose)> = None;
     for ((fit, _, start), spent) in found.into_iter().flatten() {
@@ -379,7 +381,7 @@ pub fn ellipsoid_carrier(
         hold_exponents: true,
         ..*opts
     };
-    let run = |start: &InitialPose, _: &mut dyn FnMut(&FitProgress)| {
+    let run = |start: &InitialPose, _: &mut dyn FnMut(&())| {
         let placed = fit_em_with(points, start, sigma2, &placing, coverage.as_ref());
         let fit = fit_em(points, &placed.pose, placed.sigma2, &fitting);
         let d = surface_score(
@@ -392,7 +394,7 @@ pub fn ellipsoid_carrier(
         );
         (fit, d)
     };
-    run_parallel(starts, run, &mut |_| {})
+    run_parallel(starts, run, &mut |_: &()| {})
         .into_iter()
         .filter(|f| f.1.is_finite())
         .min_by(|a, b| a.1.total_cmp(&b.1))

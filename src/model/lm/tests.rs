@@ -1,8 +1,10 @@
 //! Tests of the Levenberg–Marquardt core and search.
 
 use super::*;
+use crate::model::init::InitialPose;
 use crate::model::superquadric::MIN_EPSILON;
 use crate::synthetic::superquadric_cloud;
+use glam::{DQuat, DVec3};
 
 fn pose() -> InitialPose {
     crate::model::distance::tests::pose(0.6, 1.4)
@@ -80,19 +82,22 @@ fn steps_lower_the_cost_and_stay_finite_until_the_fit_recovers_the_shape() {
     start.shape.e2 = 1.0;
     let mut cost = weighted_cost(Metric::Radial, &start, &points, &[]);
     let mut pose = start;
-    let mut lambda = INITIAL_DAMPING;
+    let mut lambda = engine::INITIAL_DAMPING;
+    let opts = options(0.0);
+    let problem = plain::Plain::new(&points, &opts, None);
+    let total = points.len() as f64;
     for _ in 0..60 {
-        let Some((next, c)) = lm_step(
+        let Some(s) = engine::step(
+            &problem,
             &pose,
-            cost,
-            (&points, &[]),
+            (cost, &[]),
+            (&[], total),
             &mut lambda,
-            &options(0.0),
-            (&mut Vec::new(), &mut Vec::new()),
-            None,
+            &opts,
         ) else {
             break;
         };
+        let (next, c) = (s.model, s.data + s.extra);
         assert!(c < cost && c.is_finite(), "{c} after {cost}");
         assert!(next.translation.is_finite() && next.shape.is_finite());
         (pose, cost) = (next, c);
