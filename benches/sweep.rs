@@ -21,7 +21,7 @@
 //! `scale` [3 semi-axes], `translation` and `rot`, 9 numbers row-major) and scores them the same
 //! way. `cargo test` runs four clouds and fails when a figure is not finite.
 
-use bevy_deformable_sq::model::fit::{CloudOptions, FitOptions, fit_cloud, fit_residuals};
+use bevy_deformable_sq::model::fit::{CloudOptions, FitOptions, fit, fit_residuals};
 use bevy_deformable_sq::model::fit::{bounding_diagonal, surface_distances};
 use bevy_deformable_sq::synthetic::sweep_cloud;
 use std::path::PathBuf;
@@ -86,7 +86,7 @@ fn main() -> ExitCode {
         eprintln!("{}: {e}", dir.display());
         return ExitCode::from(2);
     }
-    let plan = match (CloudOptions {
+    let opts = match (CloudOptions {
         global_only: !local,
         ..CloudOptions::default()
     })
@@ -116,8 +116,8 @@ fn main() -> ExitCode {
             truths += &ply::truth_line(&format!("sweep_{i}"), &c.truth);
         }
         let start = Instant::now();
-        let report = match fit_cloud(&c.points, &plan, |_| {}) {
-            Ok((report, _)) => report,
+        let report = match fit(&c.points, &opts, |_| {}) {
+            Ok(report) => report,
             Err(e) => {
                 eprintln!("cloud {i}: {e}");
                 return ExitCode::FAILURE;

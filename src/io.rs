@@ -3,14 +3,11 @@
 //! * [`load_points`]: an OBJ file (its vertices are the points, faces ignored; parsed by `tobj`) or
 //!   a PLY file (ascii or binary, `x y z` vertex properties; parsed by `ply-rs-bw`).
 //! * [`write_obj`]: a closed triangle mesh.
-//! * [`FittedParams`]: the parameters of a fitted model, serialisable to JSON.
 //!
 //! Every error names the file and says what is wrong, with the line where there is one.
 
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
-use crate::model::fit::{FitReport, Residuals};
-use crate::model::superquadric::SuperquadricParams;
 use glam::DVec3;
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -383,61 +380,6 @@ pub fn write_model_obj(
         tess.k
     );
     write_obj(path, &x, tess.triangles(), &comment)
-}
-
-/// The parameters of a fitted model, as written by `--out-params`.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct FittedParams {
-    /// Translation c (data units).
-    pub translation: [f64; 3],
-    /// Rotation quaternion in the paper's order [s, v1, v2, v3].
-    pub rotation: [f64; 4],
-    /// The global shape (a in data units), flattened into the JSON object.
-    #[serde(flatten)]
-    pub shape: SuperquadricParams,
-    /// Tapering (t_x, t_y) of [`crate::model::deform`] (0 unless freed).
-    pub taper: [f64; 2],
-    /// Bending (b_x, b_y) of [`crate::model::deform`] (0 unless freed).
-    pub bend: [f64; 2],
-    /// Node count k² + 2.
-    pub nodes: usize,
-    /// Rings and longitudes k.
-    pub k: usize,
-    /// RMS length of the local displacements (data units).
-    pub local_rms: f64,
-    /// Steps taken.
-    pub steps: u32,
-    /// Whether the fit came to rest before the step cap.
-    pub converged: bool,
-    /// Point-to-surface residuals, as fractions of the bounding-box diagonal.
-    pub residuals: Residuals,
-}
-
-impl FittedParams {
-    /// The parameters of a fit.
-    pub fn from_report(r: &FitReport) -> Self {
-        let s = &r.state;
-        let n = s.displacement.len().max(1) as f64;
-        Self {
-            translation: s.translation.to_array(),
-            rotation: crate::model::frame::quat_to_paper(s.rotation),
-            shape: s.shape,
-            taper: s.deformation.taper,
-            bend: s.deformation.bend,
-            nodes: r.tess.node_count(),
-            k: r.tess.k,
-            local_rms: (s
-                .displacement
-                .iter()
-                .map(|d| d.length_squared())
-                .sum::<f64>()
-                / n)
-                .sqrt(),
-            steps: r.steps,
-            converged: r.converged,
-            residuals: r.residuals,
-        }
-    }
 }
 
 #[cfg(test)]

@@ -15,6 +15,9 @@ use bevy_deformable_sq::model::superquadric::SuperquadricParams;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
 use glam::{DMat3, DQuat, DVec3, EulerRot};
 
+#[path = "support/clouds.rs"]
+mod clouds;
+
 fn truth() -> (SuperquadricParams, DVec3, DQuat) {
     (
         SuperquadricParams {
@@ -38,10 +41,9 @@ fn shipped_points(name: &str) -> Vec<DVec3> {
     bevy_deformable_sq::io::load_points(&path).expect("a cloud shipped with the crate")
 }
 
-/// A shipped cloud and its pure superquadric fit with the robust options (`fit --robust
+/// A cloud and its pure superquadric fit with the robust options (`fit --robust
 /// --global-only`).
-fn pure_robust_fit(name: &str) -> (Vec<DVec3>, FitReport) {
-    let points = shipped_points(name);
+fn pure_robust_fit(points: Vec<DVec3>) -> (Vec<DVec3>, FitReport) {
     let opts = FitOptions {
         global_only: true,
         ..Default::default()
@@ -293,8 +295,8 @@ fn spring_and_strain_energy_fall_under_fitting_steps() {
 
 #[test]
 fn point_to_plane_springs_fit_a_clean_partial_cloud_more_closely_than_nearest_node_springs() {
-    // EMS's partial_pointCloud_example_1: 147 noise-free points on one side of a superquadric.
-    let points = shipped_points("ems/partial_pointCloud_example_1.ply");
+    // 150 noise-free points on half of a random superquadric.
+    let points = clouds::partial(1).points;
     // Through the paper's dynamics, whose springs these are.
     let run = |point_to_plane: bool| {
         let opts = FitOptions {
@@ -308,7 +310,7 @@ fn point_to_plane_springs_fit_a_clean_partial_cloud_more_closely_than_nearest_no
     let (node, plane) = (run(false), run(true));
     assert!(plane.converged && node.converged);
     assert!(plane.state.is_finite());
-    // Measured: mean 0.0123 → 0.0084 of the bounding-box diagonal.
+    // Measured on EMS's first partial cloud: 0.0123 → 0.0084 of the bounding-box diagonal.
     assert!(
         plane.residuals.mean < 0.8 * node.residuals.mean,
         "mean residual: nearest-node {:.4}, point-to-plane {:.4}",
@@ -447,12 +449,12 @@ fn the_robust_stages_stay_within_the_step_cap() {
 
 #[test]
 fn the_solved_superquadric_lies_on_a_clean_clouds_points_between_the_nodes() {
-    // EMS's partial_pointCloud_example_2: 757 noise-free points on one side of a superquadric. The
+    // 750 noise-free points on 60 % of a random superquadric. The
     // solved fit measures each point's distance to the continuous superquadric, not to the
     // 963-node mesh's chords, so the fitted superquadric passes through them between the nodes:
     // within 10⁻⁶ of the diagonal, and within a k = 151 tessellation's chords (22 803 nodes) to
     // 10⁻⁴; the 963-node mesh's chords lie several times farther.
-    let (points, report) = pure_robust_fit("ems/partial_pointCloud_example_2.ply");
+    let (points, report) = pure_robust_fit(clouds::partial(2).points);
     let s = &report.state;
     let exact = Residuals::of(
         surface_distances(&InitialPose::of(s), &points),
@@ -489,11 +491,11 @@ fn the_solved_superquadric_lies_on_a_clean_clouds_points_between_the_nodes() {
 
 #[test]
 fn a_dynamics_stage_with_a_point_flipping_between_two_nodes_ends() {
-    // EMS's partial_pointCloud_example_3 with a prior outlier fraction of 0.05, through the
-    // paper's dynamics: in one similarity candidate's global stage one point of the 216 flipped
-    // between two nodes at every rest, every 3 steps, and with 0.2 % of 216 rounding to no point
-    // the fit ran to its 20 000-step cap. One changed spring now counts as settled.
-    let points = shipped_points("ems/partial_pointCloud_example_3.ply");
+    // A clean one-view cloud of 220 points with a prior outlier fraction of 0.05, through the
+    // paper's dynamics and its similarity candidates: on such a cloud one point can flip
+    // between two nodes at every rest, and with 0.2 % of 220 rounding to no point a stage ran
+    // to its 20 000-step cap. One changed spring now counts as settled.
+    let points = clouds::partial(3).points;
     let opts = FitOptions {
         global_only: true,
         outlier_ratio: 0.05,
@@ -509,7 +511,7 @@ fn a_dynamics_stage_with_a_point_flipping_between_two_nodes_ends() {
         report.converged
     );
     // Over the bounding-box diagonal: the dynamics' nearest-node springs pin the superquadric to
-    // its nodes (measured 0.0103; the solved fit passes through the points, below 10⁻¹³).
+    // its nodes (the solved fit passes through the points).
     assert!(report.residuals.mean < 0.02, "{:?}", report.residuals);
 }
 
@@ -585,12 +587,12 @@ fn distance_to_truth(
 
 #[test]
 fn the_default_pure_fit_lies_on_the_true_surface_among_forty_percent_outliers() {
-    use bevy_deformable_sq::model::fit::{CloudOptions, fit_cloud};
+    use bevy_deformable_sq::model::fit::CloudOptions;
     use bevy_deformable_sq::synthetic::{OutlierSpread, sweep_cloud};
     // Two clouds of the generated sweep with 40 % outliers, one uniform in a box about a 60 %
     // view, one Gaussian about the whole surface; ranked by their plain mean distance, the
     // searched superquadrics that pass through the outliers won (3–4 % of the diagonal away).
-    let plan = CloudOptions {
+    let opts = CloudOptions {
         global_only: true,
         ..CloudOptions::default()
     }
@@ -607,7 +609,7 @@ fn the_default_pure_fit_lies_on_the_true_surface_among_forty_percent_outliers() 
                 OutlierSpread::Gaussian
             }
         );
-        let (report, _) = fit_cloud(&c.points, &plan, |_| {}).unwrap();
+        let report = fit(&c.points, &opts, |_| {}).unwrap();
         assert!(report.state.is_finite());
         let d = distance_to_truth(&c, &report);
         assert!(

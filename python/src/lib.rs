@@ -5,10 +5,10 @@
 
 mod options;
 
-use bevy_deformable_sq::io::{FittedParams, load_points as read_points};
+use bevy_deformable_sq::io::load_points as read_points;
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
-use bevy_deformable_sq::model::fit::{FitReport, Solver, fit_cloud};
+use bevy_deformable_sq::model::fit::{FitReport, FitSummary, fit as fit_cloud};
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::frame::rotation_matrix;
 use bevy_deformable_sq::model::image_fit::{ImagePartFit, PartAxes, fit_image as fit_parts};
@@ -124,7 +124,7 @@ fn surface_samples<'py>(
 #[pyclass(module = "deformable_sq", frozen)]
 struct FitResult {
     report: FitReport,
-    noise: Option<f64>,
+    summary: FitSummary,
 }
 
 #[pymethods]
@@ -132,14 +132,13 @@ impl FitResult {
     /// The translation c of the model frame (data units).
     #[getter]
     fn translation(&self) -> [f64; 3] {
-        self.report.state.translation.to_array()
+        self.summary.translation
     }
 
     /// The rotation as a unit quaternion [w, x, y, z] (the paper's [s, v1, v2, v3]).
     #[getter]
     fn rotation(&self) -> [f64; 4] {
-        let q = self.report.state.rotation;
-        [q.w, q.x, q.y, q.z]
+        self.summary.rotation
     }
 
     /// The rotation as a 3 × 3 matrix (model frame to data frame).
@@ -155,39 +154,39 @@ impl FitResult {
     /// The scale a (data units).
     #[getter]
     fn a(&self) -> f64 {
-        self.report.state.shape.a
+        self.summary.shape.a
     }
 
     /// The aspect ratios a1, a2, a3.
     #[getter]
     fn aspect(&self) -> [f64; 3] {
-        let s = &self.report.state.shape;
+        let s = &self.summary.shape;
         [s.a1, s.a2, s.a3]
     }
 
     /// The squareness ε1 (along z) and ε2 (about z).
     #[getter]
     fn epsilon(&self) -> [f64; 2] {
-        let s = &self.report.state.shape;
+        let s = &self.summary.shape;
         [s.e1, s.e2]
     }
 
     /// The tapering (t_x, t_y); zero unless freed.
     #[getter]
     fn taper(&self) -> [f64; 2] {
-        self.report.state.deformation.taper
+        self.summary.taper
     }
 
     /// The bending (b_x, b_y); zero unless freed.
     #[getter]
     fn bend(&self) -> [f64; 2] {
-        self.report.state.deformation.bend
+        self.summary.bend
     }
 
     /// Point-to-surface distances as fractions of the bounding-box diagonal: mean, rms, p95, max.
     #[getter]
     fn residuals<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let r = &self.report.residuals;
+        let r = &self.summary.residuals;
         let d = PyDict::new(py);
         for (k, v) in [
             ("mean", r.mean),
@@ -204,34 +203,31 @@ impl FitResult {
     /// Whether the fit came to rest before its step cap.
     #[getter]
     fn converged(&self) -> bool {
-        self.report.converged
+        self.summary.converged
     }
 
     /// Steps (or solver iterations) taken.
     #[getter]
     fn steps(&self) -> u32 {
-        self.report.steps
+        self.summary.steps
     }
 
     /// The node count of the membrane's tessellation.
     #[getter]
     fn nodes(&self) -> usize {
-        self.report.tess.node_count()
+        self.summary.nodes
     }
 
     /// Which solver ran: "solved" or "dynamics".
     #[getter]
     fn solver(&self) -> &'static str {
-        match self.report.solver {
-            Solver::Solved => "solved",
-            Solver::Dynamics => "dynamics",
-        }
+        self.summary.solver.name()
     }
 
     /// The noise the points show (fraction of the diagonal) when the stiffness came from it.
     #[getter]
     fn noise(&self) -> Option<f64> {
-        self.noise
+        self.summary.noise
     }
 
     /// The fitted closed surface: (vertices (V, 3) float64, faces (F, 3) int64).
@@ -252,13 +248,12 @@ impl FitResult {
 
     /// The parameters as `dsq fit --out-params` writes them.
     fn to_dict<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let json =
-            serde_json::to_string(&FittedParams::from_report(&self.report)).map_err(value_error)?;
+        let json = serde_json::to_string(&self.summary).map_err(value_error)?;
         py.import("json")?.call_method1("loads", (json,))
     }
 
     fn __repr__(&self) -> String {
-        let s = &self.report.state.shape;
+        let s = &self.summary.shape;
         format!(
             "FitResult(a={:.4}, aspect=({:.3}, {:.3}, {:.3}), epsilon=({:.3}, {:.3}), mean={:.3e}, converged={})",
             s.a,
@@ -267,8 +262,8 @@ impl FitResult {
             s.a3,
             s.e1,
             s.e2,
-            self.report.residuals.mean,
-            if self.report.converged {
+            self.summary.residuals.mean,
+            if self.summary.converged {
                 "True"
             } else {
                 "False"
@@ -287,13 +282,13 @@ fn fit(
     options: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<FitResult> {
     let points = points_of(points)?;
-    let plan = options::cloud_plan(options)?;
-    let (report, noise) = py
-        .detach(|| fit_cloud(&points, &plan, |_| {}))
+    let options = options::cloud_options(options)?;
+    let report = py
+        .detach(|| fit_cloud(&points, &options, |_| {}))
         .map_err(value_error)?;
     Ok(FitResult {
+        summary: report.summary(),
         report,
-        noise: noise.map(|n| n.relative),
     })
 }
 

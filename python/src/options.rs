@@ -3,9 +3,7 @@
 //! keyword for an unknown one or a value of the wrong type.
 
 use crate::value_error;
-use bevy_deformable_sq::model::fit::{
-    CloudOptions, CloudPlan, FitOptions, Solver, Stiffness, k_for_nodes,
-};
+use bevy_deformable_sq::model::fit::{CloudOptions, FitOptions, Solver, Stiffness, k_for_nodes};
 use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
 use bevy_deformable_sq::model::image_fit::{ImageChoices, ImageFitOptions};
 use pyo3::prelude::*;
@@ -101,7 +99,7 @@ fn tessellation(key: &str, v: &Bound<'_, PyAny>) -> PyResult<usize> {
 }
 
 /// `fit`'s keywords resolved as `dsq fit` resolves its flags for a POINTS file.
-pub fn cloud_plan(options: Option<&Bound<'_, PyDict>>) -> PyResult<CloudPlan> {
+pub fn cloud_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<FitOptions> {
     let mut c = CloudOptions::default();
     for (key, v) in keywords(options, &FIT_KEYWORDS)? {
         let flag = |v: &Bound<'_, PyAny>| value::<bool>(&key, v, "True or False");

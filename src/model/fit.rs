@@ -1,129 +1,68 @@
 //! Fitting a deformable superquadric to range points: points in, the model at rest out.
 //!
-//! [`fit`] runs one of two plans ([`FitOptions::solver`]):
+//! [`fit`] is one pipeline of stages over one context:
 //!
-//! - **Solved** (the default, beyond the paper; [`Solver::Solved`], module `solved`): the
-//!   superquadric's rest state (with its tapering and bending, when free) is solved for by
-//!   Levenberg–Marquardt ([`crate::model::lm::solve`], [`crate::model::lm::fit_deformed`]), and
-//!   with local DOFs the membrane's by linear solves for fixed attachments
-//!   ([`implicit_joint_options`]), alternated with reattachment until the attachments settle;
-//! - **the paper's dynamics** ([`Solver::Dynamics`], module `relax`): the explicit Euler steps of
-//!   eq. (15) under range springs, stage by stage ([`Stage`]), as section VI-B runs them.
+//! 1. **the context**: the points and options checked, the points normalised once to their
+//!    centroid and RMS radius (so a fit does not depend on where the data sits or on its units:
+//!    translate, rotate or scale the input and the result is the same fit, transformed), and
+//!    the membrane's stiffness chosen from their noise where the options ask;
+//! 2. **the hypotheses** ([`initial_hypotheses`]): the moments frame with each axis as z, or one
+//!    explicit pose;
+//! 3. **the global stage**, by one of two plans ([`FitOptions::solver`]):
+//!    - **solved** (the default, beyond the paper; [`Solver::Solved`]): the superquadric's rest
+//!      state, with its tapering and bending when free, by Levenberg–Marquardt
+//!      ([`crate::model::lm::solve`], [`crate::model::lm::fit_deformed`]);
+//!    - **the paper's dynamics** ([`Solver::Dynamics`]): the explicit Euler steps of eq. (15)
+//!      under range springs, stage by stage ([`Stage`]), as section VI-B runs them;
+//! 4. **the membrane**, with local DOFs: solved by linear solves for fixed attachments
+//!    ([`implicit_joint_options`]) alternated with reattachment, or the dynamics' joint stage;
+//! 5. **the report** ([`FitReport`]): the state mapped back to the data's frame, and its
+//!    residuals on every point.
 //!
-//! **Frame and scale.** Both work on the data translated to its centroid and divided by its RMS
-//! radius, and map the result back, so a fit does not depend on where the data sits or on its
-//! units: translate, rotate or scale the input and the result is the same fit, transformed.
-
-use super::centreline::{seed_deformation, seen_whole};
-use super::deform::GlobalDeformation;
-use super::dynamics::{
-    DynamicsParams, ModelState, NodalForces, StepError, Workspace, step_prepared,
-};
-use super::fem::Tessellation;
-use super::forces::range::{DEFAULT_COVERAGE, InfluenceMode, RangeForces, Robust};
-pub use super::init::Normalization;
-use super::init::{InitialPose, initial_pose};
-pub use super::lm::Solver;
-use super::lm::{LmOptions, Metric, Mixture};
-use super::superquadric::SuperquadricParams;
-use crate::model::forces::nearest::kd_tree;
-use crate::model::parallel::run_parallel;
-use glam::DVec3;
-use kiddo::SquaredEuclidean;
-use std::f64::consts::SQRT_2;
-use std::num::NonZero;
+//! [`CloudOptions`] resolves what a user gives (`dsq fit`'s flags, the Python keywords, the
+//! plugin's settings) into [`FitOptions`] once.
 
 mod cloud;
+mod context;
+mod dynamics;
+mod global;
+mod hypotheses;
+mod membrane;
+mod mesh;
 mod options;
-mod plan;
 mod relax;
+mod report;
 mod residuals;
-mod solved;
-pub use cloud::*;
-pub use options::*;
-pub use plan::*;
-use relax::*;
-pub use residuals::*;
-pub use solved::*;
 #[cfg(test)]
 mod tests;
 
-/// Fewest points a fit accepts: the 11 independent global DOFs need at least 4 points in general
-/// position, and the moments a few more to mean anything.
-pub const MIN_POINTS: usize = 10;
+pub use crate::model::init::Normalization;
+pub use cloud::{CloudOptions, Stiffness, k_for_nodes};
+pub use context::{FitProgress, Stage};
+pub use hypotheses::{
+    DUAL_AXES_RATIO, DUAL_EPSILON_GAP, cross_section_dual, initial_hypotheses,
+    similarity_candidates,
+};
+pub use mesh::{MAX_JOINT_K, joint_k};
+pub use options::{
+    FitError, FitOptions, Initialization, MIN_POINTS, NoiseStiffness, ROBUST_OUTLIER_RATIO, Solver,
+    validate_options, validate_points,
+};
+pub use relax::{has_joint_stage, implicit_joint_options, max_motion};
+pub use report::{FitReport, FitSummary};
+pub use residuals::{
+    Residuals, bounding_diagonal, closest_point_on_triangle, fit_residuals, mean_distance,
+    point_distances, point_distances_parallel, residuals, surface_distances,
+    weighted_mean_distance,
+};
 
-/// A snapshot for progress reports.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FitProgress {
-    /// Steps taken so far.
-    pub step: u32,
-    /// Current stage.
-    pub stage: Stage,
-    /// Largest node motion of the last step (units of the data's RMS radius).
-    pub max_motion: f64,
-    /// Spring plus strain energy (normalised units).
-    pub energy: f64,
-    /// Reattachments so far.
-    pub reassignments: u32,
-}
-
-/// Distances of the data points to the fitted surface, as fractions of the data's bounding-box
-/// diagonal.
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
-pub struct Residuals {
-    /// Mean distance.
-    pub mean: f64,
-    /// Root-mean-square distance.
-    pub rms: f64,
-    /// 95th percentile.
-    pub p95: f64,
-    /// Largest distance.
-    pub max: f64,
-    /// The bounding-box diagonal the figures are relative to (data units).
-    pub diagonal: f64,
-}
-
-/// The outcome of a fit.
-#[derive(Clone, Debug)]
-pub struct FitReport {
-    /// The fitted state in the data's frame and units.
-    pub state: ModelState,
-    /// The tessellation the state lives on.
-    pub tess: Tessellation,
-    /// Steps taken, over every initial hypothesis tried: Euler steps of the dynamics, or the
-    /// solved fit's Levenberg–Marquardt steps and linear solves of the membrane.
-    pub steps: u32,
-    /// Steps the chosen hypothesis took with the global DOFs alone.
-    pub global_steps: u32,
-    /// Reattachments done.
-    pub reassignments: u32,
-    /// True when the loop stopped at rest rather than at the step cap.
-    pub converged: bool,
-    /// Steps whose local update was sub-stepped for stability.
-    pub substepped_steps: u32,
-    /// Point-to-surface residuals of the fitted model.
-    pub residuals: Residuals,
-    /// Initial pose the fit started from (data frame): the chosen hypothesis, or the similarity
-    /// candidate the fit moved to.
-    pub initial: InitialPose,
-    /// The solver that ran ([`FitOptions::solver`]).
-    pub solver: Solver,
-}
-
-/// The largest distance any node moved between two sets of node positions: the measure a fit's
-/// rest test compares with its motion tolerance.
-pub fn max_motion(before: &[DVec3], after: &[DVec3]) -> f64 {
-    before
-        .iter()
-        .zip(after)
-        .map(|(a, b)| a.distance_squared(*b))
-        .fold(0.0, f64::max)
-        .sqrt()
-}
+use crate::model::dynamics::ModelState;
+use crate::model::fem::Tessellation;
+use context::{Context, Sink};
+use glam::DVec3;
 
 /// Fits a deformable superquadric to `points`, calling `progress` as it goes (every 100 steps of
-/// the dynamics; after each stage of the solved fit). See the module docs for the two plans;
-/// with moments initialisation both start from the three axis hypotheses of the moments frame.
+/// the dynamics; after each stage of the solved fit). See the module docs.
 pub fn fit(
     points: &[DVec3],
     opts: &FitOptions,
@@ -141,36 +80,34 @@ pub fn fit_watched(
     mut progress: impl FnMut(&FitProgress),
     mut watch: impl FnMut(&Tessellation, &ModelState),
 ) -> Result<FitReport, FitError> {
-    validate_points(points)?;
-    validate_options(opts)?;
-    let norm = Normalization::of(points);
-    let unit: Vec<DVec3> = points.iter().map(|p| norm.unit_point(*p)).collect();
-    let candidates = initial_hypotheses(points, opts);
-    let mut watch = |tess: &Tessellation, unit_state: &ModelState| {
-        watch(tess, &norm.state_to_data(unit_state));
+    let ctx = Context::new(points, opts)?;
+    let starts = hypotheses::starts(&ctx);
+    let norm = ctx.norm;
+    let mut watch = |tess: &Tessellation, unit: &ModelState| watch(tess, &norm.state_to_data(unit));
+    let mut sink = Sink {
+        progress: &mut progress,
+        watch: &mut watch,
     };
-    let frame = (&norm, &unit[..]);
-    if solves(opts) {
-        fit_solved(
-            points,
-            opts,
-            frame,
-            &candidates,
-            (&mut progress, &mut watch),
-        )
-    } else {
-        fit_dynamics(
-            points,
-            opts,
-            frame,
-            &candidates,
-            (&mut progress, &mut watch),
-        )
-    }
+    let outcome = match ctx.opts.solver {
+        Solver::Dynamics => dynamics::fit(&ctx, &starts, &mut sink)?,
+        Solver::Solved => {
+            let global = global::solve_global(&ctx, &starts)?;
+            (sink.watch)(&global.tess, &global.state);
+            let (local, cost) = (has_joint_stage(&ctx.opts), global.cost);
+            let outcome = if local {
+                membrane::solve_membrane(&ctx, &starts, global, &mut sink)?
+            } else {
+                global.into()
+            };
+            (sink.progress)(&FitProgress {
+                step: outcome.steps,
+                stage: if local { Stage::Joint } else { Stage::Global },
+                max_motion: 0.0,
+                energy: cost,
+                reassignments: outcome.reassignments,
+            });
+            outcome
+        }
+    };
+    Ok(FitReport::new(&ctx, outcome))
 }
-
-/// Where a plan reports: its progress, and the model (unit frame) at the end of a stage.
-type Reporting<'a> = (
-    &'a mut dyn FnMut(&FitProgress),
-    &'a mut dyn FnMut(&Tessellation, &ModelState),
-);

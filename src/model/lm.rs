@@ -19,8 +19,9 @@
 //! - [`solve`] ([`mod@search`]) runs the whole search: starts, placing, similarity switches and the
 //!   polish on every point.
 //!
-//! [`super::fit::fit`] uses it by default ([`Solver::Solved`]); the paper's dynamics stay
-//! available as [`Solver::Dynamics`], and the plugin's per-frame simulation is the dynamics.
+//! [`super::fit::fit`] uses it by default ([`super::fit::Solver::Solved`]); the paper's
+//! dynamics stay available as [`super::fit::Solver::Dynamics`], and the plugin's per-frame
+//! simulation is the dynamics.
 
 pub use super::distance::{Distance, Metric, NUM_UNKNOWNS, radial, radial_distance};
 
@@ -40,16 +41,3 @@ pub use plain::{LmFit, apply_increment, bounded_increment, fit_em, fit_em_with, 
 pub use search::*;
 #[cfg(test)]
 mod tests;
-
-/// How a fit reaches the rest state of its global DOFs.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub enum Solver {
-    /// Solved for: the superquadric by Levenberg–Marquardt ([`solve`]); with local DOFs, then
-    /// the membrane by linear solves for fixed attachments
-    /// ([`super::fit::implicit_joint_options`]).
-    #[default]
-    Solved,
-    /// The paper's explicit Euler dynamics under range springs (every stage of
-    /// [`super::fit::fit`]).
-    Dynamics,
-}

@@ -15,7 +15,7 @@ use super::components::{
 };
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
-use crate::model::fit::{FitError, FitOptions, FitProgress, FitReport, fit_watched};
+use crate::model::fit::{CloudOptions, FitError, FitOptions, FitProgress, FitReport, fit_watched};
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, poll_once};
 use std::sync::{Arc, Mutex};
@@ -30,8 +30,6 @@ use std::sync::{Arc, Mutex};
 #[component(on_insert = pause_for_the_fit)]
 pub struct FitDriver {
     options: FitOptions,
-    /// Choose the membrane's stiffness from the cloud's noise when the fit starts.
-    stiffness_from_noise: bool,
     run: Run,
 }
 
@@ -60,7 +58,6 @@ impl FitDriver {
     pub fn new(options: FitOptions) -> Self {
         Self {
             options,
-            stiffness_from_noise: false,
             run: Run::Waiting,
         }
     }
@@ -70,22 +67,23 @@ impl FitDriver {
         Self::new(options)
     }
 
-    /// The fit `dsq fit` runs on a user's cloud ([`FitOptions::for_data`], the membrane's
-    /// stiffness chosen from the cloud's noise when the fit starts), with what the model's
-    /// `settings` free: a pure superquadric when they say `global_only`, tapering and bending
-    /// when they free them. The inspector's and the sandbox's fit to convergence.
+    /// The fit `dsq fit` runs on a user's cloud ([`CloudOptions`] resolved for a cloud: the
+    /// membrane's stiffness chosen from the cloud's noise when the fit starts), with what the
+    /// model's `settings` free: a pure superquadric when they say `global_only`, tapering and
+    /// bending when they free them. The inspector's and the sandbox's fit to convergence.
     pub fn for_model(settings: &ModelSettings) -> Self {
-        let mut options = FitOptions {
+        let cloud = CloudOptions {
             global_only: settings.global_only,
-            ..FitOptions::default()
-        }
-        .for_data();
-        options.dynamics.free.taper = settings.taper;
-        options.dynamics.free.bend = settings.bend;
-        Self {
-            stiffness_from_noise: !settings.global_only,
-            ..Self::new(options)
-        }
+            taper: settings.taper,
+            bend: settings.bend,
+            ..CloudOptions::default()
+        };
+        // Switches alone cannot be out of range: the defaults stand in for an impossible error.
+        Self::new(
+            cloud
+                .resolve(FitOptions::default(), true)
+                .unwrap_or_default(),
+        )
     }
 
     /// The fit's options.
@@ -194,10 +192,6 @@ pub(crate) fn drive_fits(
                     continue;
                 };
                 let points = range.forces.points().to_vec();
-                if driver.stiffness_from_noise {
-                    driver.options = driver.options.with_stiffness_from_noise(&points).0;
-                    driver.stiffness_from_noise = false;
-                }
                 let options = driver.options;
                 let latest = Arc::new(Mutex::new(Latest::default()));
                 let shared = latest.clone();

@@ -4,7 +4,7 @@
 //! `--paper` experiment's settings first, then `--robust`, then every option given by itself.
 
 use bevy_deformable_sq::model::fit::{
-    CloudOptions, CloudPlan, FitOptions, Solver, Stiffness, k_for_nodes,
+    CloudOptions, FitOptions, NoiseStiffness, Solver, Stiffness, k_for_nodes,
 };
 use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
 use bevy_deformable_sq::model::image_fit::{
@@ -277,7 +277,7 @@ pub struct Args {
     /// The data.
     pub source: Source,
     /// The range fit's settings.
-    pub plan: CloudPlan,
+    pub options: FitOptions,
     /// The image fit's settings (`auto_parts` is also `--parts` for clouds).
     pub image: ImageArgs,
     /// `--out-mesh`.
@@ -424,7 +424,7 @@ impl FitArgs {
         if self.solver.is_some() && !is_file {
             return Err("--solver acts on POINTS fits".into());
         }
-        let plan = cloud.resolve(o, is_file).map_err(|e| e.to_string())?;
+        let options = cloud.resolve(o, is_file).map_err(|e| e.to_string())?;
         if self.paper_forces && !is_file {
             return Err(
                 "--paper-forces acts on POINTS fits (--paper, --image and --scene keep their own settings)"
@@ -440,7 +440,9 @@ impl FitArgs {
                     .into(),
             );
         }
-        if plan.stiffness_from_noise && matches!(source, Source::Image(_) | Source::Scene(_)) {
+        if options.noise_stiffness != NoiseStiffness::Off
+            && matches!(source, Source::Image(_) | Source::Scene(_))
+        {
             return Err(
                 "--w1 auto reads the noise of a point cloud; give w1 a number for images and scenes"
                     .into(),
@@ -454,7 +456,7 @@ impl FitArgs {
         }
         let args = Args {
             source,
-            plan,
+            options,
             image,
             out_mesh: self.out_mesh,
             out_params: self.out_params,

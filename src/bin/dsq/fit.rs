@@ -3,13 +3,12 @@
 
 use crate::args::{Args, Source};
 use bevy_deformable_sq::io::{
-    FittedParams, load_luminance, load_points, write_model_obj, write_obj, write_overlay_png,
+    load_luminance, load_points, write_model_obj, write_obj, write_overlay_png,
 };
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{
-    FitError, FitOptions, FitReport, Residuals, Solver, Stage, bounding_diagonal, cloud_options,
-    fit, point_distances,
+    FitError, FitOptions, FitReport, Residuals, Stage, bounding_diagonal, fit, point_distances,
 };
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::image_fit::{
@@ -50,9 +49,7 @@ pub fn run(args: Args, paper_points: Option<Vec<DVec3>>) -> Result<(), String> {
         (Source::Paper(name), None) => return Err(format!("no data for --paper {name}")),
     };
     if args.image.auto_parts > 1 {
-        let (options, _) =
-            cloud_options(&points, &args.plan).map_err(|e| format!("{name}: {e}"))?;
-        return run_parts(&points, &name, &options, &args);
+        return run_parts(&points, &name, &args.options, &args);
     }
     let (summary, report) = fit_points(&points, &name, &args, !args.quiet)?;
     if let Some(path) = &args.out_mesh {
@@ -67,14 +64,12 @@ pub fn run(args: Args, paper_points: Option<Vec<DVec3>>) -> Result<(), String> {
 
 /// Writes a range fit's parameters (`--out-params`) as pretty JSON.
 pub fn write_params(path: &Path, report: &FitReport) -> Result<(), String> {
-    let json = serde_json::to_string_pretty(&FittedParams::from_report(report))
-        .map_err(|e| e.to_string())?;
+    let json = serde_json::to_string_pretty(&report.summary()).map_err(|e| e.to_string())?;
     std::fs::write(path, json).map_err(|e| format!("{}: cannot write: {e}", path.display()))
 }
 
-/// Fits one cloud (`name` for the messages) with `args`' options, the membrane's stiffness from
-/// the cloud's noise where asked; `progress`: a line on stderr every half second. Gives the
-/// JSON summary line and the report.
+/// Fits one cloud (`name` for the messages) with `args`' options; `progress`: a line on stderr
+/// every half second. Gives the JSON summary line and the report.
 pub fn fit_points(
     points: &[DVec3],
     name: &str,
@@ -83,12 +78,12 @@ pub fn fit_points(
 ) -> Result<(serde_json::Value, FitReport), String> {
     // The wall time includes the noise estimate.
     let start = Instant::now();
-    let (options, noise) = cloud_options(points, &args.plan).map_err(|e| format!("{name}: {e}"))?;
+    let options = &args.options;
     let mut last_print = Instant::now();
     let report = if args.app {
-        fit_through_app(points, &options)
+        fit_through_app(points, options)
     } else {
-        fit(points, &options, |p| {
+        fit(points, options, |p| {
             if progress && (last_print.elapsed().as_millis() >= 500 || p.step.is_multiple_of(1000))
             {
                 last_print = Instant::now();
@@ -108,19 +103,7 @@ pub fn fit_points(
     .map_err(|e| format!("{name}: {e}"))?;
     let wall = start.elapsed();
     let through = if args.app { "plugin" } else { "core" };
-    let mut summary = range_summary(
-        name,
-        &report,
-        points.len(),
-        wall,
-        through,
-        options.global_only,
-    );
-    if let Some(noise) = noise {
-        summary["noise"] = noise.relative.into();
-        summary["w0"] = options.dynamics.w0.into();
-        summary["w1"] = options.dynamics.w1.into();
-    }
+    let summary = range_summary(name, &report, points.len(), wall, through);
     Ok((summary, report))
 }
 
@@ -141,7 +124,7 @@ fn run_parts(
     let wall = start.elapsed();
     for (j, part) in report.fits.iter().enumerate() {
         let n = report.owner.iter().filter(|&&o| o == j).count();
-        let mut line = range_summary(name, part, n, wall, "core", options.global_only);
+        let mut line = range_summary(name, part, n, wall, "core");
         line["part"] = serde_json::json!(j);
         crate::emit(&line);
     }
@@ -257,39 +240,25 @@ fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
     Ok(())
 }
 
-/// The one-line summary of a range fit (the point fitter's, and a range part's in a scene).
+/// The one-line summary of a range fit (the point fitter's, and a range part's in a scene): the
+/// fit's summary ([`FitReport::summary`]) with its residuals at the top level, and the run's
+/// file, points, wall time and path.
 fn range_summary(
     name: &str,
     report: &FitReport,
     points: usize,
     wall: Duration,
     through: &str,
-    global_only: bool,
 ) -> serde_json::Value {
-    let (r, shape) = (report.residuals, report.state.shape);
-    serde_json::json!({
-        "file": name,
-        "steps": report.steps,
-        "global_steps": report.global_steps,
-        "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
-        "steps_per_s": (report.steps as f64 / wall.as_secs_f64().max(1e-9)).round(),
-        "points": points,
-        "nodes": report.tess.node_count(),
-        "global_only": global_only,
-        "through": through,
-        "converged": report.converged,
-        "mean": r.mean,
-        "rms": r.rms,
-        "p95": r.p95,
-        "max": r.max,
-        "a": shape.a, "a1": shape.a1, "a2": shape.a2, "a3": shape.a3,
-        "e1": shape.e1, "e2": shape.e2,
-        "taper": report.state.deformation.taper, "bend": report.state.deformation.bend,
-        "solver": match report.solver {
-            Solver::Solved => "solved",
-            Solver::Dynamics => "dynamics",
-        },
-    })
+    let mut line = report.summary().flat_json();
+    line["file"] = name.into();
+    line["points"] = points.into();
+    line["wall_ms"] = ((wall.as_secs_f64() * 1e4).round() / 10.0).into();
+    line["steps_per_s"] = (report.steps as f64 / wall.as_secs_f64().max(1e-9))
+        .round()
+        .into();
+    line["through"] = through.into();
+    line
 }
 
 /// The one-line summary of one part of an image fit.
@@ -323,7 +292,7 @@ fn run_scene_file(path: &Path, args: &Args) -> Result<(), String> {
         let mut line = match run {
             PartRun::Range(report) => {
                 let n = data.range_points(&def, i).map_or(0, |p| p.len());
-                range_summary(&file, report, n, wall, "core", part.free.global_only)
+                range_summary(&file, report, n, wall, "core")
             }
             PartRun::Image(f) => image_part_line(&file, i + 1, f, tess.node_count()),
             PartRun::Free(_) => serde_json::json!({ "file": file, "steps": 0, "converged": true }),

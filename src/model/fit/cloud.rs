@@ -1,12 +1,10 @@
-//! A fit to a user's point cloud as `dsq fit POINTS` and the Python package take it: the
-//! options a user gives ([`CloudOptions`]), resolved once into the fitter's settings
-//! ([`CloudOptions::resolve`]), and the fit with the membrane's stiffness from the cloud's noise
-//! ([`fit_cloud`]). Every front end goes through here, so that one cloud fits the same from each.
+//! A fit to a user's point cloud as `dsq fit POINTS`, the Python package and the plugin's
+//! [`FitDriver::for_model`](crate::plugin::FitDriver) take it: the options a user gives
+//! ([`CloudOptions`]), resolved once into the fitter's settings ([`CloudOptions::resolve`]).
+//! Every front end goes through here, so that one cloud fits the same from each.
 
-use super::{FitError, FitOptions, FitProgress, FitReport, Solver, fit};
+use super::options::{FitError, FitOptions, NoiseStiffness, Solver, validate_options};
 use crate::model::forces::range::InfluenceMode;
-use crate::model::noise::NoiseEstimate;
-use glam::DVec3;
 
 /// The membrane's stiffness w1 as a user gives it.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -61,18 +59,6 @@ pub struct CloudOptions {
     pub implicit_local: Option<f64>,
 }
 
-/// A cloud fit's settings, resolved from [`CloudOptions`].
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct CloudPlan {
-    /// The fitter's options.
-    pub options: FitOptions,
-    /// w0 and w1 come from the noise of the cloud.
-    pub stiffness_from_noise: bool,
-    /// The user asked for that (`w1` = [`Stiffness::FromNoise`]): an estimate that cannot be
-    /// made is an error rather than the paper's stiffness.
-    pub stiffness_asked: bool,
-}
-
 /// The tessellation parameter k of a node count k² + 2 (k ≥ 3); an error names the nearest.
 pub fn k_for_nodes(n: usize) -> Result<usize, String> {
     let k = (n.saturating_sub(2) as f64).sqrt().round() as usize;
@@ -89,7 +75,7 @@ impl CloudOptions {
     /// These options over `base` (the defaults, or a paper experiment's settings). For a user's
     /// cloud (`users_cloud`) and without `paper_forces`, the defaults for a cloud come on top
     /// ([`FitOptions::for_data`]), less what was given. An error names an option out of range.
-    pub fn resolve(&self, base: FitOptions, users_cloud: bool) -> Result<CloudPlan, FitError> {
+    pub fn resolve(&self, base: FitOptions, users_cloud: bool) -> Result<FitOptions, FitError> {
         let mut o = base;
         if self.robust {
             o = o.robust();
@@ -148,45 +134,16 @@ impl CloudOptions {
         if let Some(solver) = self.solver {
             o.solver = solver;
         }
-        super::validate_options(&o)?;
-        Ok(CloudPlan {
-            options: o,
-            stiffness_from_noise: from_noise,
-            stiffness_asked: asked,
-        })
+        o.noise_stiffness = if asked {
+            NoiseStiffness::Required
+        } else if from_noise {
+            NoiseStiffness::WhenMeasurable
+        } else {
+            NoiseStiffness::Off
+        };
+        validate_options(&o)?;
+        Ok(o)
     }
-}
-
-/// Fits `points` as `plan` says, the stiffness from their noise where it says so; `progress` is
-/// called as [`fit`] calls it. Gives the report and the noise estimate, when one was made.
-pub fn fit_cloud(
-    points: &[DVec3],
-    plan: &CloudPlan,
-    progress: impl FnMut(&FitProgress),
-) -> Result<(FitReport, Option<NoiseEstimate>), FitError> {
-    let (options, noise) = cloud_options(points, plan)?;
-    Ok((fit(points, &options, progress)?, noise))
-}
-
-/// The options a fit of `points` runs with under `plan` (the stiffness from their noise where
-/// `plan` says so), and the noise estimate; an error when the estimate was asked for and cannot
-/// be made.
-pub fn cloud_options(
-    points: &[DVec3],
-    plan: &CloudPlan,
-) -> Result<(FitOptions, Option<NoiseEstimate>), FitError> {
-    if !plan.stiffness_from_noise {
-        return Ok((plan.options, None));
-    }
-    let (o, noise) = plan.options.with_stiffness_from_noise(points);
-    // Asked for, the estimate must be made; as a default, too few points keep the paper's
-    // stiffness (and the fit itself says what is wrong with the cloud, if anything).
-    if noise.is_none() && plan.stiffness_asked {
-        return Err(FitError::BadOption(
-            "too few points to estimate the noise (w1 auto)".into(),
-        ));
-    }
-    Ok((o, noise))
 }
 
 #[cfg(test)]
@@ -195,17 +152,17 @@ mod tests {
 
     #[test]
     fn a_users_cloud_gets_the_data_defaults_less_what_was_given() {
-        let plan = CloudOptions {
+        let o = CloudOptions {
             outliers: Some(0.05),
             k: Some(41),
             ..CloudOptions::default()
         }
         .resolve(FitOptions::default(), true)
         .unwrap();
-        let o = plan.options;
         assert_eq!(o.outlier_ratio, 0.05);
         assert_eq!(o.k, 41);
-        assert!(!o.k_from_data && o.point_to_plane && plan.stiffness_from_noise);
+        assert!(!o.k_from_data && o.point_to_plane);
+        assert_eq!(o.noise_stiffness, NoiseStiffness::WhenMeasurable);
         assert_eq!(o.solver, Solver::Solved);
         // The paper's forces, or a stiffness given, keep the stiffness as it is.
         for c in [
@@ -218,8 +175,8 @@ mod tests {
                 ..CloudOptions::default()
             },
         ] {
-            let plan = c.resolve(FitOptions::default(), true).unwrap();
-            assert!(!plan.stiffness_from_noise, "{c:?}");
+            let o = c.resolve(FitOptions::default(), true).unwrap();
+            assert_eq!(o.noise_stiffness, NoiseStiffness::Off, "{c:?}");
         }
     }
 

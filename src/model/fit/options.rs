@@ -1,12 +1,56 @@
 //! What a fit is asked for: [`FitOptions`], how it starts ([`Initialization`]), and the checks
 //! of its input ([`validate_points`], [`validate_options`]) with their [`FitError`]s.
 
-use super::*;
+use crate::model::dynamics::{DynamicsParams, StepError};
+use crate::model::forces::range::{DEFAULT_COVERAGE, InfluenceMode};
+use crate::model::init::InitialPose;
+use crate::model::init::Normalization;
+use crate::model::noise::{NoiseEstimate, estimate_noise, stiffness_for_noise};
+use glam::DVec3;
+
+/// Fewest points a fit accepts: the 11 independent global DOFs need at least 4 points in general
+/// position, and the moments a few more to mean anything.
+pub const MIN_POINTS: usize = 10;
+
+/// How a fit reaches the rest state of its global DOFs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum Solver {
+    /// Solved for: the superquadric by Levenberg–Marquardt ([`crate::model::lm::solve`]); with local DOFs, then
+    /// the membrane by linear solves for fixed attachments
+    /// ([`super::implicit_joint_options`]).
+    #[default]
+    Solved,
+    /// The paper's explicit Euler dynamics under range springs (every stage of [`super::fit`]).
+    Dynamics,
+}
+
+impl Solver {
+    /// Its name on the command line and in a fit's JSON: "solved" or "dynamics".
+    pub fn name(self) -> &'static str {
+        match self {
+            Solver::Solved => "solved",
+            Solver::Dynamics => "dynamics",
+        }
+    }
+}
+
+/// Whether a fit chooses the membrane's stiffness (w0, w1) from the noise its points show
+/// ([`crate::model::noise::stiffness_for_noise`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum NoiseStiffness {
+    /// w0 and w1 as the options give them.
+    #[default]
+    Off,
+    /// From the noise when it can be estimated; as given when it cannot (too few points).
+    WhenMeasurable,
+    /// From the noise; a cloud whose noise cannot be estimated is an error.
+    Required,
+}
 
 /// How the first superquadric is placed.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub enum Initialization {
-    /// From the data's centroid and central moments ([`initial_pose`]).
+    /// From the data's centroid and central moments ([`initial_pose`](crate::model::init::initial_pose)).
     #[default]
     Moments,
     /// An explicit pose and shape in the data's frame and units (the paper's experiments).
@@ -19,9 +63,9 @@ pub struct FitOptions {
     /// Tessellation: k rings × k longitudes + 2 poles.
     pub k: usize,
     /// After the joint stage on `k`, a dense cloud's membrane goes on to a finer tessellation
-    /// chosen from the data ([`joint_k`]), carried over from `k` and brought to rest there with
-    /// the global DOFs held ([`implicit_joint_options`]): nodes where the data's detail is. Off:
-    /// every stage keeps `k`. The report's `tess` is the final one. Honoured by [`fit`] and the
+    /// chosen from the data ([`joint_k`](super::joint_k)), carried over from `k` and brought to rest there with
+    /// the global DOFs held ([`implicit_joint_options`](super::implicit_joint_options)): nodes where the data's detail is. Off:
+    /// every stage keeps `k`. The report's `tess` is the final one. Honoured by [`fit`](super::fit) and the
     /// plugin's headless fit (`fit_headless`); a fit driver in a live app keeps its model's mesh.
     pub k_from_data: bool,
     /// Stiffness, damping, time step and free DOFs.
@@ -54,15 +98,15 @@ pub struct FitOptions {
     /// 0 gives the paper's equal weights.
     pub outlier_ratio: f64,
     /// After choosing the hypothesis, also try its cross-section dual (turned 45° about the model
-    /// axis with ε2 → 2 − ε2, see [`cross_section_dual`]) when ε2 is far from 1, and keep whichever
+    /// axis with ε2 → 2 − ε2, see [`cross_section_dual`](super::cross_section_dual)) when ε2 is far from 1, and keep whichever
     /// fits closer: a square section and a diamond one are each other's local minimum (EMS's
     /// "similarity switching"; beyond the paper).
     pub switch_cross_section: bool,
-    /// Try the fit's similarity candidates ([`similarity_candidates`]: the other two axes as the
+    /// Try the fit's similarity candidates ([`similarity_candidates`](super::similarity_candidates): the other two axes as the
     /// model's z with the exponents swapped, and the cross-section dual about each axis whose
     /// two perpendicular semi-axes are alike) and keep one that fits closer (EMS's similarity
     /// switching, Liu et al. 2022; beyond the paper): the solved fit by EMS's rule, at most
-    /// [`LM_SWITCHES`] times; the dynamics run each through the global stage and keep the one
+    /// `LM_SWITCHES` (2) times; the dynamics run each through the global stage and keep the one
     /// closest to the points, weighted by the chosen fit's inlier probabilities. The solved fit
     /// with local DOFs always tries them.
     pub similarity_switch: bool,
@@ -71,6 +115,8 @@ pub struct FitOptions {
     /// How the fit comes to rest: solved for (the default), or by the paper's dynamics
     /// ([`Solver`]).
     pub solver: Solver,
+    /// Whether the membrane's stiffness comes from the points' noise when the fit starts.
+    pub noise_stiffness: NoiseStiffness,
 }
 
 impl Default for FitOptions {
@@ -102,6 +148,7 @@ impl Default for FitOptions {
             similarity_switch: false,
             init: Initialization::Moments,
             solver: Solver::Solved,
+            noise_stiffness: NoiseStiffness::Off,
         }
     }
 }
@@ -153,14 +200,11 @@ impl FitOptions {
     /// These options with the membrane stiffness (w0, w1) chosen from the noise `points` show
     /// ([`crate::model::noise::estimate_noise`], [`crate::model::noise::stiffness_for_noise`]), and the estimate;
     /// unchanged options and `None` when the noise cannot be estimated (too few points).
-    pub fn with_stiffness_from_noise(
-        self,
-        points: &[DVec3],
-    ) -> (Self, Option<crate::model::noise::NoiseEstimate>) {
-        let Some(noise) = crate::model::noise::estimate_noise(points) else {
+    pub fn with_stiffness_from_noise(self, points: &[DVec3]) -> (Self, Option<NoiseEstimate>) {
+        let Some(noise) = estimate_noise(points) else {
             return (self, None);
         };
-        let (w0, w1) = crate::model::noise::stiffness_for_noise(noise.relative);
+        let (w0, w1) = stiffness_for_noise(noise.relative);
         let dynamics = DynamicsParams {
             w0,
             w1,
@@ -214,6 +258,12 @@ impl std::error::Error for FitError {}
 
 /// Checks the points a fit is given.
 pub fn validate_points(points: &[DVec3]) -> Result<(), FitError> {
+    check_count_and_values(points)?;
+    check_extent(&Normalization::of(points))
+}
+
+/// Checks that `points` are finite and at least [`MIN_POINTS`].
+pub(super) fn check_count_and_values(points: &[DVec3]) -> Result<(), FitError> {
     if let Some(index) = points.iter().position(|p| !p.is_finite()) {
         return Err(FitError::NonFinitePoint { index });
     }
@@ -222,9 +272,13 @@ pub fn validate_points(points: &[DVec3]) -> Result<(), FitError> {
             found: points.len(),
         });
     }
-    // Coincident to rounding: the spread is below 10⁻¹² of the distance from the origin (a
-    // cloud of any scale about the origin is fine).
-    let n = Normalization::of(points);
+    Ok(())
+}
+
+/// Checks that the points normalised by `n` do not all coincide: coincident to rounding, the
+/// spread is below 10⁻¹² of the distance from the origin (a cloud of any scale about the origin
+/// is fine).
+pub(super) fn check_extent(n: &Normalization) -> Result<(), FitError> {
     if !(n.scale > 1e-12 * n.centroid.abs().max_element()) || !(n.scale > 0.0) {
         return Err(FitError::Degenerate);
     }

@@ -1,32 +1,155 @@
-//! The paper's fit ([`Solver::Dynamics`]): the explicit dynamics of eq. (15) under range
-//! springs, stage by stage.
-//!
-//! The loop is the paper's (section VI-B): attach every data point to its point of influence,
-//! then repeat {gather spring forces → Euler step}, reattaching every `reassign_every` steps
-//! (200 in the paper). A stage stops at equilibrium: when the largest node motion in one step
-//! falls below `tolerance` × the data's scale right after a reattachment that moved at most
-//! `settle_fraction` of the points, and at least one ([`StageClock::after_step`]); or after
-//! `max_steps`. A model at rest is reattached at once rather than waiting for the next multiple
-//! of N, which reaches the same equilibrium in fewer steps.
-//!
-//! **Coverage first.** Data-to-model springs cannot pull a part of the model that no data point
-//! chose, so the fit starts with the weak model-to-data coverage springs of `forces::range` on,
-//! global DOFs only, until the model is at rest ([`Stage::Cover`]); then it switches them off, so
-//! the equilibrium is the paper's (data-to-model springs only). `coverage = 0` skips this stage.
-//!
-//! **Global first.** With `global_first` (default), the local DOFs are held until the global ones
-//! have come to rest, so the superquadric parameters capture all they can — what a recogniser
-//! indexes — and the local displacements only the detail it misses. The paper lets both move from
-//! the start; set `global_first = false` for that.
-//!
-//! With moments initialisation the global stages run from each of the three axis hypotheses of
-//! the moments frame side by side, and the one whose surface lies closest to the data goes on.
-//! The options may add the cross-section switch ([`FitOptions::switch_cross_section`]) and the
-//! similarity switch ([`FitOptions::similarity_switch`]) before the joint stage; with
-//! [`FitOptions::k_from_data`] the joint stage goes on to a finer tessellation chosen from the
-//! data ([`joint_k`]).
+//! One model relaxing under range springs by the paper's explicit dynamics (eq. 15), stage by
+//! stage ([`Relaxation`]), and the clock that ends a stage ([`StageClock`]): at equilibrium, when
+//! the largest node motion in one step falls below `tolerance` × the data's scale right after a
+//! reattachment that moved at most `settle_fraction` of the points, and at least one; or after
+//! its step budget. Also the options of a stage whose local update is one implicit step
+//! ([`implicit_joint_options`]), which the solved fit's membrane runs.
 
-use super::*;
+use super::context::{FitProgress, Stage};
+use super::options::{FitError, FitOptions};
+use crate::model::centreline::{seed_deformation, seen_whole};
+use crate::model::deform::GlobalDeformation;
+use crate::model::dynamics::{
+    DynamicsParams, FreeDofs, ModelState, NodalForces, Workspace, step_prepared,
+};
+use crate::model::fem::Tessellation;
+use crate::model::forces::range::{RangeForces, Robust};
+use crate::model::init::InitialPose;
+use crate::model::superquadric::NUM_SHAPE;
+use glam::DVec3;
+
+/// The largest distance any node moved between two sets of node positions: the measure a fit's
+/// rest test compares with its motion tolerance.
+pub fn max_motion(before: &[DVec3], after: &[DVec3]) -> f64 {
+    before
+        .iter()
+        .zip(after)
+        .map(|(a, b)| a.distance_squared(*b))
+        .fold(0.0, f64::max)
+        .sqrt()
+}
+
+/// The bookkeeping of one stage of the dynamics: how the forces and free DOFs are set, when
+/// points are reattached and when the model is at rest.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct StageClock {
+    /// The stage being run.
+    pub stage: Stage,
+    /// Steps since the last reattachment.
+    pub since_reassign: u32,
+}
+
+impl StageClock {
+    /// A clock at the start of `stage`.
+    pub fn new(stage: Stage) -> Self {
+        Self {
+            stage,
+            since_reassign: 0,
+        }
+    }
+
+    /// Whether the local DOFs move in this stage.
+    pub fn local_free(&self, opts: &FitOptions) -> bool {
+        opts.dynamics.free.local && self.stage == Stage::Joint
+    }
+
+    /// Whether the range springs are point-to-plane in this stage (the global stage, when
+    /// `point_to_plane` is set).
+    pub fn plane(&self, opts: &FitOptions) -> bool {
+        opts.point_to_plane && self.stage == Stage::Global
+    }
+
+    /// Coverage-spring density in this stage: the placing stage has them, and with
+    /// `global_coverage` (a tapered or bent fit of data that surrounds the model, beyond the
+    /// paper) the global stage too.
+    pub fn coverage(&self, opts: &FitOptions, global_coverage: bool) -> f64 {
+        if self.stage == Stage::Cover || (global_coverage && self.stage == Stage::Global) {
+            opts.coverage
+        } else {
+            0.0
+        }
+    }
+
+    /// After a step whose largest node motion was `motion`: reattaches through `reassign` (which
+    /// returns how many springs changed) when `reassign_every` steps have passed or the model is
+    /// at rest, and returns true when the stage is over: at rest right after a reattachment that
+    /// changed at most `settle_fraction` of the `points`, and never fewer than one. (A point
+    /// midway between two nodes can flip from one to the other at every rest for ever; below 500
+    /// points the default 0.2 % rounds to none, and such a stage ran to its step cap.)
+    pub fn after_step(
+        &mut self,
+        motion: f64,
+        opts: &FitOptions,
+        points: usize,
+        reassign: impl FnOnce() -> usize,
+    ) -> bool {
+        self.since_reassign += 1;
+        let at_rest = motion < opts.tolerance;
+        if self.since_reassign < opts.reassign_every && !at_rest {
+            return false;
+        }
+        let changed = reassign();
+        self.since_reassign = 0;
+        at_rest && changed as f64 <= (opts.settle_fraction * points as f64).max(1.0)
+    }
+}
+
+/// The step budget of each similarity candidate ([`FitOptions::similarity_switch`]) when `spent`
+/// of the fit's `max_steps` are used: an equal share of the rest, as the hypotheses share the
+/// whole, so that the candidates can run side by side and the fit stays within its cap.
+pub(super) fn similarity_share(max_steps: u32, spent: u32, candidates: usize) -> u32 {
+    max_steps.saturating_sub(spent) / candidates.max(1) as u32
+}
+
+/// The stages a fit runs before choosing among initial hypotheses: placing (when `coverage` > 0)
+/// and the global stage (unless the local DOFs move from the start).
+pub(super) fn global_stages(opts: &FitOptions) -> Vec<Stage> {
+    let mut stages = Vec::new();
+    if opts.coverage > 0.0 {
+        stages.push(Stage::Cover);
+    }
+    if opts.global_first || opts.global_only || !opts.dynamics.free.local {
+        stages.push(Stage::Global);
+    }
+    stages
+}
+
+/// Whether a fit goes on to the joint stage after the global ones.
+pub fn has_joint_stage(opts: &FitOptions) -> bool {
+    !opts.global_only && opts.dynamics.free.local
+}
+
+/// The time step of [`implicit_joint_options`] over the options' own. The local block is taken
+/// implicitly, so its damping γ_d A/Δt then weighs nothing next to the springs and the membrane,
+/// and a step brings the local DOFs to the springs' equilibrium.
+pub(crate) const IMPLICIT_JOINT_DT_SCALE: f64 = 1e4;
+
+/// The options of the joint stage of a solved fit: the global DOFs held, the local block of
+/// eq. (15) taken as one backward-Euler step ([`DynamicsParams::implicit_local`]) at a time step
+/// `IMPLICIT_JOINT_DT_SCALE` times the options' own, so that each step solves
+/// (κ + K) d = f + κ d for the current attachments, and the points reattached after every step.
+/// The stage is over when a step moves no node by more than the tolerance and the reattachment
+/// after it changes (almost) nothing: the equilibrium K d = f_d of those attachments.
+pub fn implicit_joint_options(opts: &FitOptions) -> FitOptions {
+    let d = opts.dynamics;
+    FitOptions {
+        dynamics: DynamicsParams {
+            dt: d.dt * IMPLICIT_JOINT_DT_SCALE,
+            implicit_local: true,
+            free: FreeDofs {
+                translation: false,
+                rotation: false,
+                shape: [false; NUM_SHAPE],
+                taper: false,
+                bend: false,
+                ..d.free
+            },
+            ..d
+        },
+        reassign_every: 1,
+        ..*opts
+    }
+}
 
 /// One model relaxing under range springs: the state of the loop between steps.
 #[derive(Clone)]
@@ -180,21 +303,20 @@ impl<'a> Relaxation<'a> {
 /// its data, which the data-to-model springs do not see: a cone's tip grown round, a banana longer
 /// and more bent than it is. The coverage springs hold the model to the data's extent, but on a
 /// one-view scan they would pull the unseen side onto the seen one; so they stay on only when the
-/// data surrounds the start of one of the hypotheses ([`seen_whole`]).
-pub(crate) fn surrounds(
+/// data `unit` surrounds one of the `starts` (unit frame; [`seen_whole`]).
+pub(super) fn surrounds(
     tess: &Tessellation,
     opts: &FitOptions,
     unit: &[DVec3],
-    norm: &Normalization,
-    candidates: &[InitialPose],
+    starts: &[InitialPose],
 ) -> bool {
     let free = opts.dynamics.free;
     if !(free.taper || free.bend) || opts.coverage <= 0.0 {
         return false;
     }
     let mut x = Vec::new();
-    candidates.iter().any(|candidate| {
-        let state = start_state(tess, opts, unit, &norm.pose_to_unit(candidate));
+    starts.iter().any(|start| {
+        let state = start_state(tess, opts, unit, start);
         state.node_positions(tess, &mut x);
         seen_whole(tess, &x, unit, state.shape.semi_axes().min_element())
     })
@@ -202,7 +324,7 @@ pub(crate) fn surrounds(
 
 /// The state a relaxation of `unit` starts from at `start`: with tapering or bending free, moved
 /// and deformed as the data's centreline shows ([`seed_deformation`]).
-pub(crate) fn start_state(
+pub(super) fn start_state(
     tess: &Tessellation,
     opts: &FitOptions,
     unit: &[DVec3],
@@ -219,134 +341,4 @@ pub(crate) fn start_state(
     );
     state.deformation = deformation;
     state
-}
-
-/// [`fit`] by the paper's dynamics: see the module docs. `unit` are the points in `norm`'s
-/// frame and `candidates` the initial hypotheses (data frame).
-pub(super) fn fit_dynamics(
-    points: &[DVec3],
-    opts: &FitOptions,
-    (norm, unit): (&Normalization, &[DVec3]),
-    candidates: &[InitialPose],
-    (progress, watch): Reporting,
-) -> Result<FitReport, FitError> {
-    let tess = Tessellation::new(opts.k);
-    let whole = surrounds(&tess, opts, unit, norm, candidates);
-    // The joint stage's tessellation, when it is not `tess` ([`FitOptions::k_from_data`]).
-    let mut fine = None;
-    // The options of a joint stage on that finer tessellation.
-    let finer_opts = implicit_joint_options(opts);
-    // Each hypothesis gets an equal share of the step cap.
-    let share = opts.max_steps / candidates.len().max(1) as u32;
-    let run = |initial: &InitialPose, progress: &mut dyn FnMut(&FitProgress)| {
-        let mut relax = Relaxation::new(&tess, opts, unit, &norm.pose_to_unit(initial));
-        relax.global_coverage = whole;
-        let mut converged = true;
-        for stage in global_stages(opts) {
-            converged &= relax.run(stage, share, &mut |p: &FitProgress| progress(p))?;
-        }
-        let score = mean_distance(&tess, &relax.x, relax.range.points());
-        Ok::<_, FitError>((score, relax, converged))
-    };
-    let results = run_parallel(candidates, run, progress);
-    let mut best: Option<(f64, Relaxation, bool, InitialPose)> = None;
-    let mut steps_used = 0;
-    for (result, initial) in results.into_iter().zip(candidates) {
-        let (score, relax, converged) = result?;
-        steps_used += relax.steps;
-        // Ties keep the earlier hypothesis, whichever thread finished first.
-        if best.as_ref().is_none_or(|b| score < b.0) {
-            best = Some((score, relax, converged, *initial));
-        }
-    }
-    let Some((score, mut relax, mut converged, mut initial)) = best else {
-        return Err(FitError::BadOption("no initial state to start from".into()));
-    };
-    if opts.switch_cross_section
-        && let Some(dual) = cross_section_dual(&InitialPose::of(&relax.state))
-    {
-        let mut other = Relaxation::new(&tess, opts, unit, &dual);
-        other.global_coverage = whole;
-        let budget = opts.max_steps.saturating_sub(steps_used);
-        let other_converged = other.run(Stage::Global, budget, progress)?;
-        steps_used += other.steps;
-        let other_score = mean_distance(&tess, &other.x, other.range.points());
-        if other_score < score {
-            (relax, converged) = (other, other_converged);
-            initial = norm.pose_to_data(&tess, &dual);
-        }
-    }
-    // Steps taken by runs other than `relax` (the other hypotheses and candidates).
-    let mut other_steps = steps_used - relax.steps;
-    if opts.similarity_switch {
-        // Every candidate is scored with the chosen fit's inlier probabilities.
-        let weights = relax.range.relative_weights();
-        let weighted = |x: &[DVec3]| weighted_mean_distance(&tess, x, unit, &weights);
-        let candidates = similarity_candidates(&InitialPose::of(&relax.state));
-        let share = similarity_share(opts.max_steps, other_steps + relax.steps, candidates.len());
-        // The candidates are independent runs: they run side by side like the hypotheses.
-        let run = |candidate: &InitialPose, progress: &mut dyn FnMut(&FitProgress)| {
-            let mut other = Relaxation::new(&tess, opts, unit, candidate);
-            other.global_coverage = whole;
-            let converged = other.run(Stage::Global, share, &mut |p: &FitProgress| progress(p))?;
-            let score = weighted(&other.x);
-            Ok::<_, FitError>((other, converged, score))
-        };
-        let runs = run_parallel(&candidates, run, progress);
-        let mut best_score = weighted(&relax.x);
-        let mut best: Option<(Relaxation, bool, InitialPose)> = None;
-        // In the candidates' order, so that ties and the outcome do not depend on scheduling.
-        for (result, candidate) in runs.into_iter().zip(candidates) {
-            let (other, other_converged, other_score) = result?;
-            if other_score < best_score {
-                best_score = other_score;
-                if let Some((old, _, _)) = best.replace((other, other_converged, candidate)) {
-                    other_steps += old.steps;
-                }
-            } else {
-                other_steps += other.steps;
-            }
-        }
-        if let Some((other, other_converged, candidate)) = best {
-            other_steps += relax.steps;
-            (relax, converged) = (other, other_converged);
-            initial = norm.pose_to_data(&tess, &candidate);
-        }
-    }
-    watch(&tess, &relax.state);
-    if has_joint_stage(opts) {
-        let k = if opts.k_from_data {
-            joint_k(&tess, &relax.x, relax.range.points(), opts.k)
-        } else {
-            opts.k
-        };
-        let budget = opts.max_steps.saturating_sub(other_steps);
-        converged = relax.run(Stage::Joint, budget, progress)?;
-        if k != tess.k {
-            // The membrane at rest on `tess` is the finer one's start (from zero displacements
-            // it came to rest 1.02–1.5× farther from the shipped scans), and the global DOFs
-            // at rest are held while it comes to rest again by implicit steps (with them free,
-            // the same fit at 2–4× the time).
-            relax = relax.retessellate(fine.insert(Tessellation::new(k)));
-            (relax.opts, relax.params) = (&finer_opts, finer_opts.dynamics);
-            converged = relax.run(Stage::Joint, budget, progress)?;
-        }
-    }
-    let state = norm.state_to_data(&relax.state);
-    let (steps, global_steps) = (relax.steps + other_steps, relax.global_steps);
-    let (reassignments, substepped_steps) = (relax.reassignments, relax.substepped);
-    let tess = fine.unwrap_or(tess);
-    let residuals = fit_residuals(&tess, &state, points);
-    Ok(FitReport {
-        state,
-        steps,
-        global_steps,
-        reassignments,
-        converged,
-        substepped_steps,
-        residuals,
-        initial,
-        tess,
-        solver: Solver::Dynamics,
-    })
 }

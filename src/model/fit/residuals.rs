@@ -1,10 +1,33 @@
 //! How far a fit lies from its data: point-to-surface distances through the tessellation or the
 //! continuous superquadric, and their summaries ([`Residuals`]).
 
-use super::*;
+use crate::model::dynamics::ModelState;
+use crate::model::fem::Tessellation;
+use crate::model::forces::nearest::kd_tree;
+use crate::model::init::{InitialPose, Normalization};
+use crate::model::lm::{DeformedPose, deformed_distances};
+use glam::DVec3;
+use kiddo::SquaredEuclidean;
+use std::num::NonZero;
+
+/// Distances of the data points to the fitted surface, as fractions of the data's bounding-box
+/// diagonal.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Residuals {
+    /// Mean distance.
+    pub mean: f64,
+    /// Root-mean-square distance.
+    pub rms: f64,
+    /// 95th percentile.
+    pub p95: f64,
+    /// Largest distance.
+    pub max: f64,
+    /// The bounding-box diagonal the figures are relative to (data units).
+    pub diagonal: f64,
+}
 
 /// The mean distance of `points` to the surface through `node_x`, point i weighted by
-/// `weights[i]` (the similarity switch's score, [`FitOptions::similarity_switch`]).
+/// `weights[i]` (the similarity switch's score, [`FitOptions::similarity_switch`](super::FitOptions::similarity_switch)).
 pub fn weighted_mean_distance(
     tess: &Tessellation,
     node_x: &[DVec3],
@@ -15,7 +38,7 @@ pub fn weighted_mean_distance(
 }
 
 /// The mean of the distances `d`, `d[i]` weighted by `weights[i]`.
-pub(super) fn weighted_mean(d: &[f64], weights: &[f64]) -> f64 {
+fn weighted_mean(d: &[f64], weights: &[f64]) -> f64 {
     let total: f64 = weights.iter().sum();
     d.iter().zip(weights).map(|(d, w)| d * w).sum::<f64>() / total.max(f64::MIN_POSITIVE)
 }
@@ -62,11 +85,11 @@ pub fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> DVec
 
 /// Number of nearest nodes whose incident triangles are searched for each point's closest
 /// surface point in [`residuals`].
-pub const RESIDUAL_CANDIDATE_NODES: usize = 12;
+pub(crate) const RESIDUAL_CANDIDATE_NODES: usize = 12;
 
 /// Distance from every point to the triangulated surface through `node_x` (the render
 /// triangulation of `tess`). The closest point is searched on the triangles around the
-/// [`RESIDUAL_CANDIDATE_NODES`] nearest nodes (k-d tree), which contain it on any surface whose
+/// `RESIDUAL_CANDIDATE_NODES` nearest nodes (k-d tree), which contain it on any surface whose
 /// triangles are not much longer than the node spacing.
 pub fn point_distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) -> Vec<f64> {
     distances(tess, node_x, points, false)
@@ -74,9 +97,9 @@ pub fn point_distances(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3]) 
 
 /// Points a run of [`point_distances_parallel`] takes: each run measures on a list of triangles
 /// seen of its own, as long as the mesh's triangle list.
-pub const PARALLEL_DISTANCES: usize = 256;
+pub(crate) const PARALLEL_DISTANCES: usize = 256;
 
-/// [`point_distances`] over rayon's threads, in runs of [`PARALLEL_DISTANCES`] points: each point
+/// [`point_distances`] over rayon's threads, in runs of `PARALLEL_DISTANCES` points: each point
 /// is measured as it is there, so the distances are the same to the bit. For the parts of a fit
 /// that run alone, such as the residuals ([`fit_residuals`]); the hypotheses and candidates,
 /// which already run side by side, use [`point_distances`].
@@ -160,7 +183,7 @@ pub(super) fn distances(
 /// measured on its own mesh, which is what it renders; a pure superquadric (all displacements
 /// zero) on its continuous surface, which the solved fit fits and which the 963-node mesh's
 /// chords would misstate by more than a clean fit's distances: [`surface_distances`], or for a
-/// tapered or bent one [`crate::model::lm::deformed_distances`].
+/// tapered or bent one [`deformed_distances`].
 pub fn fit_residuals(tess: &Tessellation, state: &ModelState, points: &[DVec3]) -> Residuals {
     // Measured in the points' unit frame, so that no squared distance overflows at any scale;
     // the figures are relative to the diagonal, so only it is scaled back.
@@ -186,11 +209,11 @@ pub(super) fn unit_residuals(
         let d = if state.deformation.is_identity() {
             surface_distances(&pose, points)
         } else {
-            let deformed = crate::model::lm::DeformedPose {
+            let deformed = DeformedPose {
                 pose,
                 deformation: state.deformation,
             };
-            crate::model::lm::deformed_distances(&deformed, points)
+            deformed_distances(&deformed, points)
         };
         return Residuals::of(d, bounding_diagonal(points));
     }

@@ -315,7 +315,7 @@ pub struct DeformedFit {
     pub converged: bool,
 }
 
-/// The engine's EM rounds ([`super::engine`]) on the deformed surface from `start`, from an
+/// The engine's EM rounds (the module `engine`) on the deformed surface from `start`, from an
 /// inlier variance of at least `sigma2` and the start's own spread; `free` says which
 /// deformation coordinates move (t_x, t_y, b_x, b_y); the others are held at the start's.
 pub fn fit_deformed(

@@ -1,4 +1,4 @@
-//! The superquadric's eleven unknowns as a problem of the engine ([`super::engine`]): the
+//! The superquadric's eleven unknowns as a problem of the engine (the module `engine`): the
 //! semi-axes a·a_i, the exponents ε1 and ε2, the translation and a rotation increment about the
 //! current orientation, against the radial, normal or exact surface distance ([`Metric`]), with
 //! the [`Coverage`] term when one is given. The exact distance keeps each point's foot between
@@ -213,7 +213,7 @@ impl From<EmFit<InitialPose>> for LmFit {
 }
 
 /// The superquadric fitted to `points` from `start` by the engine's EM rounds
-/// ([`super::engine`]) on [`LmOptions::metric`]'s distance, from inlier variance `sigma2`.
+/// (the module `engine`) on [`LmOptions::metric`]'s distance, from inlier variance `sigma2`.
 pub fn fit_em(points: &[DVec3], start: &InitialPose, sigma2: f64, opts: &LmOptions) -> LmFit {
     fit_em_with(points, start, sigma2, opts, None)
 }
