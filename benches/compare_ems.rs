@@ -1,12 +1,15 @@
 //! Side by side with EMS (Liu et al., CVPR 2022) on its six published clouds: the point-to-surface
-//! residuals of EMS's fits (`assets/data/ems/ems_results.jsonl`, computed by running EMS; see
-//! `assets/data/ATTRIBUTION.md`) and of ours, and the recovered parameters.
+//! residuals of ours and, given EMS's fits, of EMS's, and the recovered parameters.
 //!
 //! ```text
-//! cargo bench --bench compare_ems
+//! cargo bench --bench compare_ems [-- DIR] [--ems FILE]
 //! ```
 //!
-//! `cargo test` runs it too, and fails when a figure is not a finite number.
+//! DIR holds the clouds (`*.ply`; default `../shared/data/ems/single_superquadric`, EMS's clouds
+//! kept beside the crate, never in it). `--ems FILE` reads EMS's fits of them, made by running
+//! EMS outside the crate (JSON lines with `cloud`, `shape`, `scale`, `translation` and `rot`).
+//! `cargo test` runs it on six generated clouds instead, and fails when a figure is not a finite
+//! number.
 //!
 //! Residuals: mean / p95 distance of all the cloud's points (outliers included) to the fitted
 //! surface, as fractions of the cloud's bounding-box diagonal (`model::fit::residuals`). Pure
@@ -22,15 +25,47 @@ use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{FitOptions, FitReport, Residuals, fit, residuals};
 use bevy_deformable_sq::model::init::InitialPose;
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
-use std::path::Path;
+use glam::DVec3;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+#[path = "../tests/support/clouds.rs"]
+mod clouds;
 #[path = "common/ems.rs"]
 mod ems;
-// It runs whole under `cargo test` too, so it has no use for `mode::benched`.
-#[allow(dead_code)]
 #[path = "common/mode.rs"]
 mod mode;
+
+/// The clouds to fit: `DIR/*.ply` by name when benched, else six generated clouds.
+fn clouds_from(dir: Option<&Path>) -> Result<Vec<(String, Vec<DVec3>)>, String> {
+    let Some(dir) = dir else {
+        return Ok((1..=3)
+            .flat_map(|i| {
+                [
+                    (format!("noisy_{i}"), clouds::noisy(i).points),
+                    (format!("partial_{i}"), clouds::partial(i).points),
+                ]
+            })
+            .collect());
+    };
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| format!("{}: {e}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "ply"))
+        .collect();
+    files.sort();
+    files
+        .iter()
+        .map(|f| {
+            let name = f
+                .file_stem()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .into_owned();
+            load_points(f).map(|p| (name, p)).map_err(|e| e.to_string())
+        })
+        .collect()
+}
 
 /// ε1, ε2 and the semi-axes largest first.
 fn describe(q: &SuperquadricParams) -> String {
@@ -48,9 +83,32 @@ fn pair(r: &Residuals) -> String {
 }
 
 fn main() -> ExitCode {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/data/ems");
-    let results = match ems::read_results(&root.join("ems_results.jsonl")) {
-        Ok(r) => r,
+    let benched = mode::benched();
+    let mut dir =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/ems/single_superquadric");
+    let mut ems_file = None;
+    let mut args = std::env::args()
+        .skip(1)
+        .filter(|a| a != "--bench")
+        .filter(|_| benched);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--ems" => ems_file = args.next().map(PathBuf::from),
+            _ => dir = PathBuf::from(a),
+        }
+    }
+    let results = match &ems_file {
+        Some(f) => match ems::read_results(f) {
+            Ok(r) => r,
+            Err(e) => {
+                eprintln!("{e}");
+                return ExitCode::from(2);
+            }
+        },
+        None => Vec::new(),
+    };
+    let clouds = match clouds_from(benched.then_some(dir.as_path())) {
+        Ok(c) => c,
         Err(e) => {
             eprintln!("{e}");
             return ExitCode::from(2);
@@ -60,28 +118,24 @@ fn main() -> ExitCode {
         "| cloud | EMS | ours, global only | ours, global only, `--robust` | ours, with local DOFs | EMS ε1, ε2 / semi-axes | ours `--robust` | ours, global only |"
     );
     println!("|---|---|---|---|---|---|---|---|");
-    for ems in &results {
-        let points = match load_points(&root.join(format!("{}.ply", ems.cloud))) {
-            Ok(p) => p,
-            Err(e) => {
-                eprintln!("{e}");
-                return ExitCode::from(2);
-            }
-        };
-        let InitialPose {
-            translation,
-            rotation,
-            shape,
-        } = ems.pose();
+    for (name, points) in &clouds {
+        let ems = results.iter().find(|f| &f.cloud == name);
         let fine = Tessellation::new(151);
         // A pure superquadric's residuals, on the fine tessellation.
         let exact = |translation, rotation, shape| {
             let state = ModelState::new(&fine, translation, rotation, shape);
             let mut x = Vec::new();
             state.node_positions(&fine, &mut x);
-            residuals(&fine, &x, &points)
+            residuals(&fine, &x, points)
         };
-        let theirs = exact(translation, rotation, shape);
+        let theirs = ems.map(|e| {
+            let InitialPose {
+                translation,
+                rotation,
+                shape,
+            } = e.pose();
+            (exact(translation, rotation, shape), shape)
+        });
         let run = |global_only: bool, robust: bool| -> Result<FitReport, String> {
             let mut opts = FitOptions {
                 global_only,
@@ -90,28 +144,28 @@ fn main() -> ExitCode {
             if robust {
                 opts = opts.robust();
             }
-            fit(&points, &opts, |_| {}).map_err(|e| format!("{}: {e}", ems.cloud))
+            fit(points, &opts, |_| {}).map_err(|e| format!("{name}: {e}"))
         };
         let fits = (run(true, false), run(true, true), run(false, false));
         let (Ok(global), Ok(robust), Ok(local)) = fits else {
-            eprintln!("a fit of {} failed", ems.cloud);
+            eprintln!("a fit of {name} failed");
             return ExitCode::from(2);
         };
         let ours =
             [&global, &robust].map(|r| exact(r.state.translation, r.state.rotation, r.state.shape));
-        let figures = [&theirs, &ours[0], &ours[1], &local.residuals].map(|r| [r.mean, r.p95]);
-        if let Err(e) = mode::check_finite(&ems.cloud, figures.as_flattened()) {
+        let figures = [&ours[0], &ours[1], &local.residuals].map(|r| [r.mean, r.p95]);
+        if let Err(e) = mode::check_finite(name, figures.as_flattened()) {
             eprintln!("{e}");
             return ExitCode::FAILURE;
         }
         println!(
             "| {} | {} | {} | {} | {} | {} | {} | {} |",
-            ems.cloud,
-            pair(&theirs),
+            name,
+            theirs.map_or("–".into(), |t| pair(&t.0)),
             pair(&ours[0]),
             pair(&ours[1]),
             pair(&local.residuals),
-            describe(&shape),
+            theirs.map_or("–".into(), |t| describe(&t.1)),
             describe(&robust.state.shape),
             describe(&global.state.shape),
         );

@@ -3,7 +3,7 @@
 //! of the largest semi-axis, 20 % outliers).
 //!
 //! ```text
-//! cargo bench --bench ground_truth [-- --clouds N] [--export DIR]
+//! cargo bench --bench ground_truth [-- --clouds N] [--export DIR] [--ems FILE]
 //! ```
 //!
 //! `cargo test` runs it on two clouds, ignoring any arguments, and fails when a figure is not a
@@ -16,15 +16,16 @@
 //! of the semi-axes, mean error of ε1 and ε2, translation error over the largest semi-axis and
 //! the rotation error in degrees (all after matching the axes). Prints a Markdown table and the
 //! medians. `--export DIR` also writes each cloud as `DIR/cloud_N.ply` (ASCII) and its truth as
-//! `DIR/truth.jsonl`, so that other fitters can be run on the same clouds. EMS's fits of the first
-//! 20 clouds (`assets/data/ems/ground_truth_ems.jsonl`, from running EMS on the exported clouds;
-//! see `assets/data/ATTRIBUTION.md`) are scored the same way in the last column.
+//! `DIR/truth.jsonl`, so that other fitters can be run on the same clouds; `--ems FILE` reads EMS's
+//! fits of them (made by running EMS on the exported clouds, outside the crate: JSON lines with
+//! `cloud`, `shape`, `scale`, `translation` and `rot`) and scores them the same way in the last
+//! column.
 
 use bevy_deformable_sq::model::fit::{FitOptions, Solver, bounding_diagonal, fit, point_distances};
 use bevy_deformable_sq::model::init::InitialPose;
 use bevy_deformable_sq::synthetic::{CloudRecipe, ParameterErrors, ground_truth_cloud};
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[path = "common/ems.rs"]
@@ -65,6 +66,7 @@ fn main() -> ExitCode {
     let benched = mode::benched();
     let mut clouds = if benched { 20u64 } else { 2 };
     let mut export: Option<PathBuf> = None;
+    let mut ems_file: Option<PathBuf> = None;
     // Under `cargo test` the arguments are the test runner's (a filter), not ours.
     let mut args = std::env::args()
         .skip(1)
@@ -80,8 +82,9 @@ fn main() -> ExitCode {
                 }
             },
             ("--export", Some(dir)) => export = Some(PathBuf::from(dir)),
+            ("--ems", Some(file)) => ems_file = Some(PathBuf::from(file)),
             _ => {
-                eprintln!("usage: ground_truth [--clouds N] [--export DIR]");
+                eprintln!("usage: ground_truth [--clouds N] [--export DIR] [--ems FILE]");
                 return ExitCode::from(2);
             }
         }
@@ -92,14 +95,13 @@ fn main() -> ExitCode {
         eprintln!("{}: {e}", dir.display());
         return ExitCode::from(2);
     }
-    let ems_path =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/data/ems/ground_truth_ems.jsonl");
-    let ems_fits = match ems::read_results(&ems_path) {
-        Ok(r) => r,
-        Err(e) => {
+    let ems_fits = match ems_file.as_deref().map(ems::read_results) {
+        Some(Ok(r)) => r,
+        Some(Err(e)) => {
             eprintln!("{e}");
             return ExitCode::from(2);
         }
+        None => Vec::new(),
     };
     println!(
         "| cloud | ε1, ε2 (truth) | ours, global only: axes / ε / translation / rotation | ours, `--robust`, dynamics | ours, `--robust`, solved (the default) | EMS |"

@@ -20,12 +20,17 @@ fn scratch(name: &str) -> PathBuf {
     d
 }
 
-fn shipped(path: &str) -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("assets/data")
-        .join(path)
-        .display()
-        .to_string()
+#[path = "support/clouds.rs"]
+mod clouds;
+
+/// Generated cloud `i` of `kind` ("noisy" or "partial"), as a file.
+fn generated(kind: &str, i: u64) -> String {
+    let dir = clouds::cloud_dir();
+    let path = match kind {
+        "noisy" => clouds::noisy_file(&dir, i),
+        _ => clouds::partial_file(&dir, i),
+    };
+    path.display().to_string()
 }
 
 fn lines(out: &Output) -> Vec<serde_json::Value> {
@@ -41,10 +46,10 @@ fn many_files_give_a_line_each_in_order_and_the_single_fits_outputs() {
     let bad = dir.join("broken.ply");
     std::fs::write(&bad, "not a ply file\n").unwrap();
     let files = [
-        shipped("ems/partial_pointCloud_example_3.ply"),
+        generated("partial", 3),
         bad.display().to_string(),
-        shipped("ems/noisy_pointCloud_example_2.ply"),
-        shipped("ems/partial_pointCloud_example_1.ply"),
+        generated("noisy", 2),
+        generated("partial", 1),
     ];
     let out_dir = dir.join("fits");
     let mut args: Vec<&str> = files.iter().map(String::as_str).collect();
@@ -106,12 +111,9 @@ fn many_files_give_a_line_each_in_order_and_the_single_fits_outputs() {
 #[test]
 fn batch_options_that_cannot_apply_are_refused_in_one_line() {
     let dir = scratch("refused");
-    let (a, b) = (
-        shipped("ems/noisy_pointCloud_example_1.ply"),
-        shipped("ems/noisy_pointCloud_example_2.ply"),
-    );
+    let (a, b) = (generated("noisy", 1), generated("noisy", 2));
     // Two files of one name in different folders would overwrite each other's output.
-    let twin = dir.join("noisy_pointCloud_example_1.ply");
+    let twin = dir.join("noisy_1.ply");
     std::fs::copy(&a, &twin).unwrap();
     let out_dir = dir.join("fits").display().to_string();
     let twin = twin.display().to_string();
@@ -133,9 +135,7 @@ fn batch_options_that_cannot_apply_are_refused_in_one_line() {
 #[test]
 fn a_reader_that_goes_away_ends_the_run_quietly() {
     // `dsq fit *.ply | head -1`: stdout closes before the lines are written.
-    let files: Vec<String> = (1..=3)
-        .map(|i| shipped(&format!("ems/noisy_pointCloud_example_{i}.ply")))
-        .collect();
+    let files: Vec<String> = (1..=3).map(|i| generated("noisy", i)).collect();
     let mut child = Command::new(env!("CARGO_BIN_EXE_dsq"))
         .arg("fit")
         .args(&files)

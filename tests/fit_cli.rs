@@ -39,6 +39,9 @@ fn example_stdout(name: &str) -> String {
     text
 }
 
+#[path = "support/clouds.rs"]
+mod clouds;
+
 fn scratch() -> PathBuf {
     let d = std::env::temp_dir().join(format!("bdsq-cli-{}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();
@@ -146,10 +149,8 @@ fn bad_inputs_exit_2_with_a_one_line_error() {
 
 #[test]
 fn bad_options_exit_2() {
-    let cloud = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/assets/data/ems/partial_pointCloud_example_1.ply"
-    );
+    let cloud = clouds::partial_file(&clouds::cloud_dir(), 1);
+    let cloud = cloud.to_str().unwrap();
     for args in [
         vec![cloud, "--nodes", "100"],
         vec![cloud, "--w1", "-1"],
@@ -188,10 +189,8 @@ fn w1_auto_takes_the_stiffness_from_the_clouds_noise_and_is_refused_for_scenes()
 #[test]
 fn fits_a_shipped_cloud_and_writes_mesh_and_params() {
     let dir = scratch();
-    let cloud = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/assets/data/ems/partial_pointCloud_example_1.ply"
-    );
+    let cloud = clouds::partial_file(&clouds::cloud_dir(), 1);
+    let cloud = cloud.to_str().unwrap();
     let mesh = dir.join("fit.obj");
     let params = dir.join("fit.json");
     let out = run(&[
@@ -215,7 +214,7 @@ fn fits_a_shipped_cloud_and_writes_mesh_and_params() {
     for key in ["steps", "wall_ms", "points", "nodes", "mean", "rms", "max"] {
         assert!(summary.get(key).is_some(), "summary lacks {key}: {last}");
     }
-    assert_eq!(summary["points"], 147);
+    assert_eq!(summary["points"], 150);
     assert_eq!(summary["nodes"], 227);
     assert!(summary["mean"].as_f64().unwrap() < 0.01, "{last}");
     let obj = std::fs::read_to_string(&mesh).unwrap();
@@ -501,7 +500,7 @@ fn app_needs_the_bevy_feature_and_says_so() {
 #[test]
 fn every_shipped_cloud_fits_through_the_app_to_the_cores_mesh() {
     let data = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/data");
-    let mut clouds: Vec<String> = [
+    let mut files: Vec<String> = [
         "bunny_scan.obj",
         "cow_scan.obj",
         "ant_scan.obj",
@@ -511,9 +510,13 @@ fn every_shipped_cloud_fits_through_the_app_to_the_cores_mesh() {
     .iter()
     .map(|f| format!("{data}/{f}"))
     .collect();
+    let generated = clouds::cloud_dir();
     for i in 1..=3 {
-        for kind in ["noisy", "partial"] {
-            clouds.push(format!("{data}/ems/{kind}_pointCloud_example_{i}.ply"));
+        for file in [
+            clouds::noisy_file(&generated, i),
+            clouds::partial_file(&generated, i),
+        ] {
+            files.push(file.display().to_string());
         }
     }
     let flag_sets: [&[&str]; 6] = [
@@ -525,7 +528,7 @@ fn every_shipped_cloud_fits_through_the_app_to_the_cores_mesh() {
         &["--nodes", "2603"],
     ];
     let dir = scratch();
-    for (c, cloud) in clouds.iter().enumerate() {
+    for (c, cloud) in files.iter().enumerate() {
         for (f, flags) in flag_sets.iter().enumerate() {
             let mesh = |through: &[&str]| {
                 let path = dir.join(format!("app_{c}_{f}_{}.obj", through.len()));
@@ -596,10 +599,8 @@ fn the_deform_example_prints_four_fits_per_object() {
 #[test]
 fn a_users_cloud_gets_robust_forces_and_a_stiffness_from_its_noise_unless_the_papers_are_asked_for()
 {
-    let cloud = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/assets/data/ems/partial_pointCloud_example_1.ply"
-    );
+    let cloud = clouds::partial_file(&clouds::cloud_dir(), 1);
+    let cloud = cloud.to_str().unwrap();
     // With local DOFs: w0 and w1 from the noise, solved.
     let local = &json_lines(&run(&[cloud, "--k", "15", "--quiet"]))[0];
     let w1 = local["w1"].as_f64().expect("w1 chosen from the noise");
@@ -635,7 +636,8 @@ fn a_users_cloud_gets_robust_forces_and_a_stiffness_from_its_noise_unless_the_pa
 
 #[test]
 fn the_solved_fit_is_the_default_and_fits_a_clean_cloud_in_far_fewer_steps() {
-    let cloud = "assets/data/ems/partial_pointCloud_example_1.ply";
+    let cloud = clouds::partial_file(&clouds::cloud_dir(), 1);
+    let cloud = cloud.to_str().unwrap();
     let line = |args: &[&str]| {
         let out = run(&[&[cloud, "--quiet"], args].concat());
         json_lines(&out).pop().expect("a summary line")
@@ -653,10 +655,11 @@ fn the_solved_fit_is_the_default_and_fits_a_clean_cloud_in_far_fewer_steps() {
     let dynamics = line(&["--global-only", "--solver", "dynamics"]);
     assert_eq!(dynamics["solver"], "dynamics", "{dynamics}");
     let (steps, mean) = steps_and_mean(&dynamics);
-    // The cloud is a sampled superquadric: the solved fit passes through its points, the
-    // dynamics' nearest-node springs pin the surface to its nodes (measured 0.0034).
+    // The cloud is a sampled superquadric: the solved fit passes through its points (to a
+    // tenth of the σ floor: measured 1.2e-5 of the diagonal), the dynamics' nearest-node
+    // springs pin the surface to its nodes (measured 0.0028).
     assert!(
-        solved_mean < 1e-8 && mean < 0.01,
+        solved_mean < 1e-4 && mean < 0.01 && mean > 10.0 * solved_mean,
         "solved {solved_mean}, dynamics {mean}"
     );
     assert!(

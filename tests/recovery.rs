@@ -449,11 +449,11 @@ fn the_robust_stages_stay_within_the_step_cap() {
 
 #[test]
 fn the_solved_superquadric_lies_on_a_clean_clouds_points_between_the_nodes() {
-    // 750 noise-free points on 60 % of a random superquadric. The
-    // solved fit measures each point's distance to the continuous superquadric, not to the
-    // 963-node mesh's chords, so the fitted superquadric passes through them between the nodes:
-    // within 10⁻⁶ of the diagonal, and within a k = 151 tessellation's chords (22 803 nodes) to
-    // 10⁻⁴; the 963-node mesh's chords lie several times farther.
+    // 750 noise-free points on 60 % of a random superquadric. The solved fit measures each
+    // point's distance to the continuous superquadric, not to the 963-node mesh's chords, so the
+    // fitted superquadric passes through them between the nodes: to a tenth of the σ floor (3e-4
+    // of the diagonal), where a clean fit stops, and within a k = 151 tessellation's chords
+    // (22 803 nodes) to 10⁻⁴; the 963-node mesh's chords lie several times farther.
     let (points, report) = pure_robust_fit(clouds::partial(2).points);
     let s = &report.state;
     let exact = Residuals::of(
@@ -461,7 +461,7 @@ fn the_solved_superquadric_lies_on_a_clean_clouds_points_between_the_nodes() {
         bounding_diagonal(&points),
     );
     assert!(
-        exact.mean < 1e-6 && exact.p95 < 2e-6,
+        exact.mean < 3e-5 && exact.p95 < 1e-4,
         "the refined superquadric lies {exact:?} from the points"
     );
     // A pure superquadric's report measures it so, not on a mesh (in the points' unit frame,

@@ -1,5 +1,6 @@
-//! EMS's fits as committed in `assets/data/ems/*.jsonl` (numbers from running EMS; see
-//! `assets/data/ATTRIBUTION.md`), shared by the examples that compare with it.
+//! EMS's fits of clouds, read from a file made by running EMS outside the crate (JSON lines with
+//! `cloud`, `shape`, `scale`, `translation` and `rot`), shared by the measurement programs that
+//! compare with it.
 
 use bevy_deformable_sq::model::init::InitialPose;
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
