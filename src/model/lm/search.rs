@@ -25,7 +25,9 @@
 //! shipped scans, one-view scans of the shipped meshes from three more directions and EMS's
 //! multi-part clouds) the first alone left three fits 7–29 % farther from the points than the
 //! dynamics, the second alone two fits 6 % farther; together none is more than 1 % farther
-//! (docs/results.md, "The solved fit").
+//! (docs/results.md, "The solved fit"). When the first search's fit passes through its inliers
+//! (`passes_through`: at the σ floor where every EM fit stops, with at least the prior's share
+//! of inliers), no fit can explain the points better, and the second search gives up.
 //!
 //! Both searches end with the surface distance ([`Metric::Surface`]); the kept fit is then
 //! polished on every point (on [`FINE_POINTS`] of a larger cloud) for [`FINE_ROUNDS`] rounds.
@@ -34,6 +36,7 @@ use super::{Coverage, LmFit, LmOptions, Metric, Mixture, fit_em, fit_em_with};
 use crate::model::init::InitialPose;
 use crate::model::parallel::run_parallel;
 use glam::DVec3;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// The outcome of [`solve`].
 #[derive(Clone, Debug, PartialEq)]
@@ -199,6 +202,20 @@ fn switch(
     (None, steps)
 }
 
+/// Whether `fit` passes through its inliers as closely as a fit can: its weighted cost is at
+/// most a hundredth of the σ floor's (its inliers within a tenth of the floor, where every EM
+/// fit stops), and it counts at least the prior's share of the `n` points as inliers. No other
+/// minimum then explains the points better, and [`solve`] does not search further.
+pub(super) fn passes_through(fit: &LmFit, n: usize, mixture: &Mixture) -> bool {
+    let inliers = if fit.weights.is_empty() {
+        n as f64
+    } else {
+        fit.weights.iter().sum()
+    };
+    inliers >= (1.0 - mixture.outlier_ratio) * n as f64
+        && fit.cost <= 0.01 * mixture.sigma2_floor * inliers
+}
+
 /// What both searches are given.
 struct Search<'a> {
     points: &'a [DVec3],
@@ -236,8 +253,10 @@ fn search_from_starts(s: &Search) -> Option<(Scored, u32)> {
     Some(((fit, least, start), iterations))
 }
 
-/// The search from placed starts (see the module docs), ending with the surface distance.
-fn placed_search(s: &Search) -> Option<(Scored, u32)> {
+/// The search from placed starts (see the module docs), ending with the surface distance;
+/// `None` as soon as `stop` is set.
+fn placed_search(s: &Search, stop: &AtomicBool) -> Option<(Scored, u32)> {
+    let stopped = || stop.load(Ordering::Relaxed);
     let points = s.points;
     let coverage = Coverage::new(points, crate::model::forces::range::DEFAULT_COVERAGE);
     let placing = LmOptions {
@@ -251,13 +270,21 @@ fn placed_search(s: &Search) -> Option<(Scored, u32)> {
         ..*s.opts
     };
     let run = |start: &InitialPose, _: &mut dyn FnMut(&())| {
+        if stopped() {
+            return None;
+        }
         let placed = fit_em_with(points, start, s.sigma2, &placing, coverage.as_ref());
+        if stopped() {
+            return None;
+        }
         let fit = fit_em(points, &placed.pose, placed.sigma2, &free);
         let iterations = placed.iterations + fit.iterations;
         let d = surface_score(&fit.pose, points, &s.opts.mixture);
-        (fit, d, *start, iterations)
+        Some((fit, d, *start, iterations))
     };
-    let mut fits = run_parallel(s.starts, run, &mut |_: &()| {});
+    let mut fits: Vec<_> = run_parallel(s.starts, run, &mut |_: &()| {})
+        .into_iter()
+        .collect::<Option<_>>()?;
     let mut iterations: u32 = fits.iter().map(|f| f.3).sum();
     fits.retain(|f| f.1.is_finite());
     // Ranked by the exact distance: the placed fits are far apart, and their first-order
@@ -272,6 +299,9 @@ fn placed_search(s: &Search) -> Option<(Scored, u32)> {
     let mut pending: Vec<(InitialPose, InitialPose)> =
         rest.iter().map(|f| (f.0.pose, f.2)).collect();
     for _ in 0..s.max_switches.max(u32::from(!pending.is_empty())) {
+        if stopped() {
+            return None;
+        }
         let mut tried = std::mem::take(&mut pending);
         if s.max_switches > 0 {
             tried.extend((s.candidates)(&best.pose).into_iter().map(|c| (c, c)));
@@ -316,18 +346,29 @@ pub fn solve(
         candidates: &candidates,
         max_switches,
     };
+    // The two searches side by side; the second gives up when the first passes through its
+    // inliers.
+    let done = AtomicBool::new(false);
     let kinds = [true, false];
     let run = |&from_starts: &bool, _: &mut dyn FnMut(&())| {
         if from_starts {
-            search_from_starts(&search)
+            let found = search_from_starts(&search);
+            if found
+                .as_ref()
+                .is_some_and(|((f, _, _), _)| passes_through(f, sample.len(), &opts.mixture))
+            {
+                done.store(true, Ordering::Relaxed);
+            }
+            found
         } else {
-            placed_search(&search)
+            placed_search(&search, &done)
         }
     };
-    let found = run_parallel(&kinds, run, &mut |_: &()| {});
+    let mut found = run_parallel(&kinds, run, &mut |_: &()| {}).into_iter();
+    let (first, second) = (found.next().flatten(), found.next().flatten());
     let mut iterations = 0;
     let mut best: Option<(f64, LmFit, InitialPose)> = None;
-    for ((fit, _, start), spent) in found.into_iter().flatten() {
+    for ((fit, _, start), spent) in [first, second].into_iter().flatten() {
         iterations += spent;
         let d = surface_score(&fit.pose, &sample, &opts.mixture);
         if d.is_finite() && best.as_ref().is_none_or(|b| d < b.0) {

@@ -250,3 +250,26 @@ fn the_mixture_score_prefers_the_surface_of_the_inliers_where_the_plain_mean_doe
     };
     assert!(gaussian.score(&on_b) < gaussian.score(&on_a));
 }
+
+#[test]
+fn only_a_fit_through_its_inliers_at_the_floor_ends_the_search() {
+    let truth = pose();
+    let points = superquadric_cloud(&truth.shape, truth.translation, truth.rotation, 300, 0.0, 8);
+    let opts = options(0.2);
+    let exact = fit_em(&points, &truth, 0.01, &opts);
+    assert!(search::passes_through(&exact, points.len(), &opts.mixture));
+    // The same surface with most points called outliers: not the whole explanation.
+    let few = LmFit {
+        weights: vec![0.5; points.len()],
+        ..exact.clone()
+    };
+    assert!(!search::passes_through(&few, points.len(), &opts.mixture));
+    // A fit above the floor: another minimum may lie closer.
+    let mut off = truth;
+    off.shape.a *= 1.02;
+    let near = LmFit {
+        cost: weighted_cost(Metric::Radial, &off, &points, &[]),
+        ..exact
+    };
+    assert!(!search::passes_through(&near, points.len(), &opts.mixture));
+}
