@@ -366,6 +366,9 @@ pub fn solve(
     };
     let mut found = run_parallel(&kinds, run, &mut |_: &()| {}).into_iter();
     let (first, second) = (found.next().flatten(), found.next().flatten());
+    // Whether the second search ran to its end or gave up depends on the scheduling: once the
+    // first passes through its inliers, the second is dropped either way, steps and all.
+    let second = second.filter(|_| !done.load(Ordering::Relaxed));
     let mut iterations = 0;
     let mut best: Option<(f64, LmFit, InitialPose)> = None;
     for ((fit, _, start), spent) in [first, second].into_iter().flatten() {
