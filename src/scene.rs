@@ -66,8 +66,8 @@ pub(crate) use validate::relative_path;
 /// The file extension of scene files (`egg.dsq.ron`), registered with the asset loader.
 pub const SCENE_EXTENSION: &str = "dsq.ron";
 
-/// Largest tessellation a scene may ask for (k² + 2 = 250 002 nodes).
-pub const MAX_K: usize = 500;
+/// Largest tessellation a scene may ask for: the fitter's ([`crate::model::fem::MAX_K`]).
+pub use crate::model::fem::MAX_K;
 
 /// A scene that could not be read, checked, loaded or written.
 #[derive(Clone, Debug, PartialEq)]

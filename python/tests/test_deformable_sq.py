@@ -129,7 +129,7 @@ def test_bad_input_raises_value_error_with_dsqs_message(tmp_path):
         ({"no_such_option": 1}, "unknown option"),
         ({"global_only": "yes"}, "global_only: expected True or False"),
         ({"solver": "newton"}, "not a solver"),
-        ({"outliers": 1.5}, "outlier_ratio"),
+        ({"outliers": 1.5}, "outliers = 1.5 is out of range [0, 1)"),
         ({"nodes": 964}, "nearest is 963"),
         ({"w1": "often"}, "w1: expected a number"),
     ]:
@@ -201,3 +201,65 @@ def test_the_dask_example_gives_the_cli_batchs_table(tmp_path):
     for row, line in zip(rows, batch):
         for key in ("a", "a1", "a2", "a3", "e1", "e2", "mean", "p95", "converged", "steps"):
             assert row[key] == line[key], (row["file"], key)
+
+
+# Every keyword over its whole space: at its bounds, past them, at 0, negative, huge, NaN,
+# infinite and of the wrong type. A fit gives finite numbers or raises ValueError naming the
+# keyword; never a panic (PanicException is not an Exception) or an abort.
+EVERYWHERE = [0, -1, 1e300, 10**30, float("nan"), float("inf"), float("-inf"), "abc", None, [1], True]
+FIT_VALUES = {
+    "k": [3, 2, 836, 837], "nodes": [11, 6, 963, 964], "w0": [1e-300], "w1": ["auto", 1e-300],
+    "beta": [1e-300], "max_steps": [1, 2**32 - 1, 2**32], "outliers": [0.999999, 1.0],
+    "reassign": [1, 2**32 - 1], "implicit_local": [1e-300], "solver": ["solved", "dynamics", "x"],
+    "global_only": [False], "taper": [False], "bend": [False], "robust": [False],
+}
+IMAGE_VALUES = {
+    "sigma": [0.25, 0.2, 1e-300], "band": [1e-300], "region": [1e300], "k": [3, 837],
+    "nodes": [11, 964], "w0": [1e300], "w1": [1e300], "beta": [1e-300, 1e300],
+    "max_steps": [1, 2**64], "global_only": [False], "fix_epsilon": [False],
+}
+
+
+def finite(x):
+    if isinstance(x, dict):
+        return all(finite(v) for v in x.values())
+    if isinstance(x, (list, tuple)):
+        return all(finite(v) for v in x)
+    if isinstance(x, float):
+        return np.isfinite(x)
+    return True
+
+
+@pytest.mark.parametrize("key", sorted(FIT_VALUES))
+def test_every_fit_keyword_fits_finitely_or_raises_value_error(key):
+    pts = superquadric_cloud((0.5, 0.8, 1.1), 0.7, 1.2, 300, 0.005, 31)
+    for v in FIT_VALUES[key] + EVERYWHERE:
+        options = {key: v}
+        if key != "max_steps":
+            options["max_steps"] = 30
+        if key in ("k", "nodes"):
+            options["global_only"] = True
+        try:
+            r = d.fit(pts, **options)
+        except ValueError as e:
+            assert "\n" not in str(e) and key in str(e), (key, v, str(e))
+            continue
+        assert finite(r.to_dict()), (key, v, r.to_dict())
+
+
+@pytest.mark.parametrize("key", sorted(IMAGE_VALUES))
+def test_every_image_keyword_fits_finitely_or_raises_value_error(key):
+    rows, cols = np.mgrid[0:120, 0:160]
+    image = np.where((cols - 80.0) ** 2 / 30**2 + (rows - 60.0) ** 2 / 20**2 <= 1, 40, 230)
+    image = image.astype(np.uint8)
+    for v in IMAGE_VALUES[key] + EVERYWHERE:
+        options = {key: v}
+        if key != "max_steps":
+            options["max_steps"] = 20
+        try:
+            parts = d.fit_image(image, [(58, 61, 102, 61, 80, 47, 80, 75)], **options)
+        except ValueError as e:
+            assert "\n" not in str(e) and key in str(e), (key, v, str(e))
+            continue
+        for p in parts:
+            assert np.isfinite(p.translation).all() and np.isfinite(p.epsilon).all(), (key, v)

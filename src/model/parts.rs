@@ -95,6 +95,18 @@ pub struct Partition {
     pub moved: usize,
 }
 
+/// Checks that `n` points can be split into `parts`: at least one part, and [`MIN_POINTS`] points
+/// a part.
+fn check_parts(n: usize, parts: usize) -> Result<(), FitError> {
+    if parts == 0 || n < parts.saturating_mul(MIN_POINTS) {
+        return Err(FitError::BadOption(format!(
+            "parts = {parts} is out of range [1, {}]: each part needs {MIN_POINTS} points and the cloud has {n}",
+            n / MIN_POINTS
+        )));
+    }
+    Ok(())
+}
+
 /// Splits `points` among parts, one per entry of `opts` (each part's own tessellation, stiffness
 /// and forces): at most `rounds` rounds of global-only fits, each followed by giving every point
 /// to the part whose fitted surface is nearest (see the module docs).
@@ -113,13 +125,7 @@ pub fn partition(
 ) -> Result<Partition, FitError> {
     super::fit::validate_points(points)?;
     let k = opts.len();
-    if k == 0 || points.len() < k * MIN_POINTS {
-        return Err(FitError::BadOption(format!(
-            "{k} parts need at least {} points ({MIN_POINTS} each); the cloud has {}",
-            k.max(1) * MIN_POINTS,
-            points.len()
-        )));
-    }
+    check_parts(points.len(), k)?;
     let explicit: Vec<Option<InitialPose>> = opts
         .iter()
         .map(|o| match o.init {
@@ -206,6 +212,7 @@ pub fn fit_parts(
     rounds: u32,
     opts: &FitOptions,
 ) -> Result<Partition, FitError> {
+    check_parts(points.len(), k)?;
     let each = vec![
         FitOptions {
             init: Initialization::Moments,
@@ -374,11 +381,14 @@ mod tests {
             0.0,
             1,
         );
-        let e = fit_parts(&points, 3, 2, &FitOptions::default()).unwrap_err();
-        assert!(
-            e.to_string().contains("3 parts need at least 30 points"),
-            "{e}"
-        );
+        for parts in [3, 0, usize::MAX] {
+            let e = fit_parts(&points, parts, 2, &FitOptions::default()).unwrap_err();
+            assert!(
+                e.to_string()
+                    .contains(&format!("parts = {parts} is out of range [1, 2]")),
+                "{e}"
+            );
+        }
     }
 
     #[test]

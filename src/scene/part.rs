@@ -138,7 +138,10 @@ impl PartDef {
             return Err(SceneError::at_field(
                 file,
                 f("k"),
-                format!("must lie in [{MIN_K}, {MAX_K}], found {}", self.k),
+                format!(
+                    "must lie in [{MIN_K}, {MAX_K}] (the largest takes about 1 GB), found {}",
+                    self.k
+                ),
             ));
         }
         check(file, &f("w0"), self.w0, 0.0, false)?;

@@ -76,8 +76,9 @@ pub struct FitArgs {
     /// Node count k² + 2 (e.g. 963, 1683, 2603, 5043).
     #[arg(long, value_name = "N", conflicts_with = "k", help_heading = "Model")]
     pub nodes: Option<usize>,
-    /// Tessellation: k latitude rings × k longitudes + 2 poles (k ≥ 3).
-    #[arg(long, value_name = "K", value_parser = clap::value_parser!(u32).range(3..), help_heading = "Model")]
+    /// Tessellation: k latitude rings × k longitudes + 2 poles (k in [3, 836]: the largest takes
+    /// about 1 GB).
+    #[arg(long, value_name = "K", help_heading = "Model")]
     pub k: Option<u32>,
     /// Membrane stiffness w0 (≥ 0).
     #[arg(long, value_name = "F", value_parser = non_negative, help_heading = "Model")]
@@ -88,7 +89,7 @@ pub struct FitArgs {
     /// Data-spring strength β (> 0).
     #[arg(long, value_name = "F", value_parser = positive, help_heading = "Model")]
     pub beta: Option<f64>,
-    /// Step cap (per part for scenes and images).
+    /// Step cap (per part for scenes and images; at least 1).
     #[arg(long, value_name = "N", help_heading = "Model")]
     pub max_steps: Option<u32>,
 
@@ -138,10 +139,10 @@ pub struct FitArgs {
     /// Points of influence migrate over the surface (the paper's Fig. 3).
     #[arg(long, help_heading = "Point clouds")]
     pub migrate: bool,
-    /// Reattach the points every N steps (the paper: 200).
+    /// Reattach the points every N steps (the paper: 200; at least 1).
     #[arg(long, value_name = "N", help_heading = "Point clouds")]
     pub reassign: Option<u32>,
-    /// Fit N parts (a cloud split among them, or the N largest blobs of an image).
+    /// Fit N parts (a cloud split among them, or the N largest blobs of an image; at least 1).
     #[arg(long, value_name = "N", help_heading = "Point clouds")]
     pub parts: Option<usize>,
     /// Run the fit through the Bevy plugin in a headless app (needs the `bevy` feature).
@@ -361,6 +362,9 @@ impl FitArgs {
         }
         .resolve(image.options, image.sigma)?;
         if let Some(parts) = self.parts {
+            if parts == 0 {
+                return Err("parts = 0 is out of range: it must be at least 1".into());
+            }
             image.auto_parts = parts;
         }
         if !self.part.is_empty() {

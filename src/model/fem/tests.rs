@@ -551,3 +551,25 @@ fn prolong_keeps_a_field_where_the_nodes_coincide_and_interpolates_between() {
         assert!(d.distance(constant[0]) < 1e-12);
     }
 }
+
+#[test]
+fn a_tessellation_is_bounded_by_the_memory_it_takes_and_a_k_past_it_is_named() {
+    assert_eq!(MAX_K, 836);
+    for k in [MIN_K, 31, MAX_K] {
+        assert_eq!(check_k("k", k), Ok(()));
+    }
+    for (k, says) in [
+        (2, "k = 2 is out of range [3, 836]: k = 3 is the coarsest"),
+        (
+            837,
+            "k = 837 is out of range [3, 836]: 700571 nodes would take about 1.1 GB",
+        ),
+        (100_000, "10000000002 nodes would take about 15 TB"),
+        (usize::MAX, "bytes, k = 836 about 1.1 GB"),
+    ] {
+        let e = check_k("k", k).unwrap_err();
+        assert!(e.contains(says) && !e.contains('\n'), "{e}");
+    }
+    // Built directly, a k past the bound is held to it rather than allocated.
+    assert_eq!(Tessellation::new(usize::MAX).k, MAX_K);
+}

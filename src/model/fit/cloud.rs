@@ -4,6 +4,7 @@
 //! Every front end goes through here, so that one cloud fits the same from each.
 
 use super::options::{FitError, FitOptions, NoiseStiffness, Solver, validate_options};
+use crate::model::fem::check_k;
 use crate::model::forces::range::InfluenceMode;
 
 /// The membrane's stiffness w1 as a user gives it.
@@ -51,12 +52,59 @@ pub struct CloudOptions {
     pub w1: Option<Stiffness>,
     /// Data-spring strength β > 0.
     pub beta: Option<f64>,
-    /// Step cap.
+    /// Step cap (at least 1).
     pub max_steps: Option<u32>,
     /// Reattach the points every N steps (at least 1).
     pub reassign: Option<u32>,
     /// The membrane's update as one backward-Euler step with this local damping γ_d > 0.
     pub implicit_local: Option<f64>,
+}
+
+impl CloudOptions {
+    /// Checks what a user gave, by the names of `dsq fit`'s flags and the Python keywords: an
+    /// error of one line with the name, the value and its range. `k` lies in
+    /// [[`MIN_K`](crate::model::fem::MIN_K), [`MAX_K`](crate::model::fem::MAX_K)] (what the
+    /// memory allows), `max_steps` and `reassign` are at least 1, `outliers`
+    /// in [0, 1), `w0` and `w1` at least 0, `beta` and `implicit_local` above 0, all finite.
+    fn check(&self) -> Result<(), FitError> {
+        if let Some(k) = self.k {
+            check_k("k", k).map_err(FitError::BadOption)?;
+        }
+        for (name, n) in [("max_steps", self.max_steps), ("reassign", self.reassign)] {
+            if n == Some(0) {
+                return Err(FitError::BadOption(format!(
+                    "{name} = 0 is out of range: it must be at least 1"
+                )));
+            }
+        }
+        let w1 = match self.w1 {
+            Some(Stiffness::Value(w)) => Some(w),
+            _ => None,
+        };
+        for (name, value, range, ok) in [
+            (
+                "outliers",
+                self.outliers,
+                "[0, 1)",
+                (|x| (0.0..1.0).contains(&x)) as fn(f64) -> bool,
+            ),
+            ("w0", self.w0, "[0, ∞)", |x| x >= 0.0),
+            ("w1", w1, "[0, ∞)", |x| x >= 0.0),
+            ("beta", self.beta, "(0, ∞)", |x| x > 0.0),
+            ("implicit_local", self.implicit_local, "(0, ∞)", |x| {
+                x > 0.0
+            }),
+        ] {
+            if let Some(x) = value
+                && !(x.is_finite() && ok(x))
+            {
+                return Err(FitError::BadOption(format!(
+                    "{name} = {x} is out of range {range}"
+                )));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// The tessellation parameter k of a node count k² + 2 (k ≥ 3); an error names the nearest.
@@ -76,6 +124,7 @@ impl CloudOptions {
     /// cloud (`users_cloud`) and without `paper_forces`, the defaults for a cloud come on top
     /// ([`FitOptions::for_data`]), less what was given. An error names an option out of range.
     pub fn resolve(&self, base: FitOptions, users_cloud: bool) -> Result<FitOptions, FitError> {
+        self.check()?;
         let mut o = base;
         if self.robust {
             o = o.robust();
@@ -98,7 +147,7 @@ impl CloudOptions {
             o.max_steps = max_steps;
         }
         if let Some(n) = self.reassign {
-            o.reassign_every = n.max(1);
+            o.reassign_every = n;
         }
         o.global_only |= self.global_only;
         o.dynamics.free.taper |= self.taper;
@@ -188,7 +237,7 @@ mod tests {
                     outliers: Some(1.5),
                     ..CloudOptions::default()
                 },
-                "outlier_ratio",
+                "outliers = 1.5 is out of range [0, 1)",
             ),
             (
                 CloudOptions {

@@ -2,6 +2,7 @@
 //! of its input ([`validate_points`], [`validate_options`]) with their [`FitError`]s.
 
 use crate::model::dynamics::{DynamicsParams, StepError};
+use crate::model::fem::check_k;
 use crate::model::forces::range::{DEFAULT_COVERAGE, InfluenceMode};
 use crate::model::init::InitialPose;
 use crate::model::init::Normalization;
@@ -313,17 +314,16 @@ pub fn validate_options(o: &FitOptions) -> Result<(), FitError> {
             return Err(bad(name, v));
         }
     }
-    if o.k < crate::model::fem::MIN_K {
-        return Err(FitError::BadOption(format!(
-            "k = {} is below the minimum {}",
-            o.k,
-            crate::model::fem::MIN_K
-        )));
-    }
-    if o.reassign_every == 0 {
-        return Err(FitError::BadOption(
-            "reassign_every = 0; it must be at least 1".into(),
-        ));
+    check_k("k", o.k).map_err(FitError::BadOption)?;
+    for (name, n) in [
+        ("max_steps", o.max_steps),
+        ("reassign_every", o.reassign_every),
+    ] {
+        if n == 0 {
+            return Err(FitError::BadOption(format!(
+                "{name} = 0 is out of range: it must be at least 1"
+            )));
+        }
     }
     Ok(())
 }

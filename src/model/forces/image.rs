@@ -87,8 +87,13 @@ pub enum ImageError {
         /// Row-major index of the pixel.
         index: usize,
     },
-    /// σ is not a positive finite number.
-    BadSigma(f64),
+    /// σ lies outside [[`MIN_SIGMA`], a third of the image's longer side].
+    BadSigma {
+        /// The σ given.
+        sigma: f64,
+        /// The largest σ the image takes.
+        max: f64,
+    },
     /// The frame's extent is not positive or its centre not finite.
     BadFrame,
 }
@@ -106,9 +111,10 @@ impl std::fmt::Display for ImageError {
             ImageError::NonFinite { index } => {
                 write!(f, "luminance of pixel {index} is not finite")
             }
-            ImageError::BadSigma(s) => {
-                write!(f, "sigma = {s}: must be a positive number of pixels")
-            }
+            ImageError::BadSigma { sigma, max } => write!(
+                f,
+                "sigma = {sigma} is out of range [{MIN_SIGMA}, {max}] pixels (a third of the image's longer side)"
+            ),
             ImageError::BadFrame => write!(
                 f,
                 "image placement: extent must be positive and the centre finite"
@@ -147,6 +153,10 @@ pub struct ImagePotential {
 pub const TWO_TONE: f64 = 0.9;
 
 /// Normalised 1D Gaussian of width `sigma` pixels, radius ⌈3σ⌉.
+/// The narrowest Gaussian the potential takes, in pixels: its weight one pixel off is
+/// exp(−8) ≈ 3·10⁻⁴, so a narrower one smooths nothing, and at 10⁻³⁰⁰ its 1/σ² overflows.
+pub const MIN_SIGMA: f64 = 0.25;
+
 fn gaussian_kernel(sigma: f64) -> Vec<f64> {
     let radius = (3.0 * sigma).ceil() as isize;
     let mut k: Vec<f64> = (-radius..=radius)
@@ -222,8 +232,11 @@ impl ImagePotential {
         if let Some(index) = luminance.iter().position(|v| !v.is_finite()) {
             return Err(ImageError::NonFinite { index });
         }
-        if !(sigma.is_finite() && sigma > 0.0) {
-            return Err(ImageError::BadSigma(sigma));
+        // The kernel reaches 3σ: a σ past a third of the image's longer side smooths it all away
+        // (and a kernel of 10³⁰⁰ pixels would not fit in memory).
+        let max = width.max(height) as f64 / 3.0;
+        if !(sigma.is_finite() && (MIN_SIGMA..=max).contains(&sigma)) {
+            return Err(ImageError::BadSigma { sigma, max });
         }
         if !(frame.extent.is_finite() && frame.extent > 0.0 && frame.center.is_finite()) {
             return Err(ImageError::BadFrame);

@@ -22,7 +22,8 @@ pub struct ImageChoices {
     pub band: Option<f64>,
     /// Region (balloon) force fraction (≥ 0).
     pub region: Option<f64>,
-    /// Tessellation k (≥ 3).
+    /// Tessellation k (in [[`MIN_K`](crate::model::fem::MIN_K),
+    /// [`MAX_K`](crate::model::fem::MAX_K)]).
     pub k: Option<usize>,
     /// Membrane stiffness w0 (≥ 0).
     pub w0: Option<f64>,
@@ -30,7 +31,7 @@ pub struct ImageChoices {
     pub w1: Option<f64>,
     /// Force strength β (> 0).
     pub beta: Option<f64>,
-    /// Step cap per part.
+    /// Step cap per part (at least 1).
     pub max_steps: Option<usize>,
 }
 
@@ -67,12 +68,9 @@ impl ImageChoices {
                 return Err(format!("{name} = {x} is out of range"));
             }
         }
-        if o.k < crate::model::fem::MIN_K {
-            return Err(format!(
-                "k = {} is below the minimum {}",
-                o.k,
-                crate::model::fem::MIN_K
-            ));
+        crate::model::fem::check_k("k", o.k)?;
+        if o.max_steps == 0 {
+            return Err("max_steps = 0 is out of range: it must be at least 1".into());
         }
         Ok((o, sigma))
     }
@@ -115,7 +113,7 @@ mod tests {
                     k: Some(2),
                     ..ImageChoices::default()
                 },
-                "k = 2",
+                "k = 2 is out of range",
             ),
         ] {
             let e = c.resolve(base, 2.0).unwrap_err();

@@ -211,10 +211,10 @@ fn bad_images_and_sigmas_are_refused() {
         ImagePotential::new(4, 4, nan, 1.0, f),
         Err(ImageError::NonFinite { index: 5 })
     );
-    for s in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+    for s in [0.0, -1.0, 0.2, 2.0, f64::NAN, f64::INFINITY] {
         assert!(matches!(
             ImagePotential::new(4, 4, vec![0.5; 16], s, f),
-            Err(ImageError::BadSigma(_))
+            Err(ImageError::BadSigma { .. })
         ));
     }
     let bad = ImageFrame {
