@@ -24,7 +24,6 @@
 use bevy_deformable_sq::model::fit::{FitOptions, Solver, bounding_diagonal, fit, point_distances};
 use bevy_deformable_sq::model::init::InitialPose;
 use bevy_deformable_sq::synthetic::{CloudRecipe, ParameterErrors, ground_truth_cloud};
-use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -32,6 +31,8 @@ use std::process::ExitCode;
 mod ems;
 #[path = "common/mode.rs"]
 mod mode;
+#[path = "common/ply.rs"]
+mod ply;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -47,19 +48,6 @@ fn cell(e: &ParameterErrors) -> String {
         "{:.3} / {:.3} / {:.3} / {:.1}°",
         e.axes, e.epsilon, e.translation, e.rotation_deg
     )
-}
-
-fn write_ply(path: &PathBuf, points: &[glam::DVec3]) -> std::io::Result<()> {
-    let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
-    writeln!(f, "ply\nformat ascii 1.0\nelement vertex {}", points.len())?;
-    writeln!(
-        f,
-        "property float x\nproperty float y\nproperty float z\nend_header"
-    )?;
-    for p in points {
-        writeln!(f, "{} {} {}", p.x, p.y, p.z)?;
-    }
-    f.flush()
 }
 
 fn main() -> ExitCode {
@@ -116,18 +104,11 @@ fn main() -> ExitCode {
         let t = &c.truth;
         if let Some(dir) = &export {
             let path = dir.join(format!("cloud_{seed}.ply"));
-            if let Err(e) = write_ply(&path, &c.points) {
+            if let Err(e) = ply::write_ascii(&path, &c.points) {
                 eprintln!("{}: {e}", path.display());
                 return ExitCode::from(2);
             }
-            truths += &format!(
-                "{{\"cloud\":{seed},\"translation\":{:?},\"rotation_xyzw\":{:?},\"semi_axes\":{:?},\"epsilon\":[{},{}]}}\n",
-                t.translation.to_array(),
-                t.rotation.to_array(),
-                t.shape.semi_axes().to_array(),
-                t.shape.e1,
-                t.shape.e2
-            );
+            truths += &ply::truth_line(&format!("cloud_{seed}"), t);
         }
         let inliers = &c.points[..c.points.len() - c.outliers];
         let diagonal = bounding_diagonal(inliers);

@@ -158,15 +158,9 @@ fn switch_cross_section<'a>(
     let Some(dual) = cross_section_dual(&InitialPose::of(&chosen.relax.state)) else {
         return Ok(());
     };
-    let opts = &ctx.opts;
-    let mut other = Relaxation::new(tess, opts, &ctx.unit, &dual);
-    other.global_coverage = whole;
     let spent = chosen.other_steps + chosen.relax.steps;
-    let converged = other.run(
-        Stage::Global,
-        opts.max_steps.saturating_sub(spent),
-        progress,
-    )?;
+    let budget = ctx.opts.max_steps.saturating_sub(spent);
+    let (other, converged) = global_run(ctx, tess, whole, &dual, budget, progress)?;
     let score = |r: &Relaxation| mean_distance(tess, &r.x, r.range.points());
     if score(&other) < score(&chosen.relax) {
         chosen.other_steps += chosen.relax.steps;
@@ -194,9 +188,7 @@ fn switch_similar<'a>(
     let spent = chosen.other_steps + chosen.relax.steps;
     let share = similarity_share(opts.max_steps, spent, candidates.len());
     let run = |candidate: &InitialPose, progress: &mut dyn FnMut(&FitProgress)| {
-        let mut other = Relaxation::new(tess, opts, &ctx.unit, candidate);
-        other.global_coverage = whole;
-        let converged = other.run(Stage::Global, share, &mut |p: &FitProgress| progress(p))?;
+        let (other, converged) = global_run(ctx, tess, whole, candidate, share, progress)?;
         let score = weighted(&other.x);
         Ok::<_, FitError>((other, converged, score))
     };
@@ -220,4 +212,20 @@ fn switch_similar<'a>(
         (chosen.relax, chosen.converged, chosen.start) = (other, converged, candidate);
     }
     Ok(())
+}
+
+/// The global stage from `start` (unit frame) within `budget` steps, the coverage springs on
+/// when the data surrounds the model (`whole`): the relaxation and whether it came to rest.
+fn global_run<'a>(
+    ctx: &'a Context,
+    tess: &'a Tessellation,
+    whole: bool,
+    start: &InitialPose,
+    budget: u32,
+    progress: &mut dyn FnMut(&FitProgress),
+) -> Result<(Relaxation<'a>, bool), FitError> {
+    let mut relax = Relaxation::new(tess, &ctx.opts, &ctx.unit, start);
+    relax.global_coverage = whole;
+    let converged = relax.run(Stage::Global, budget, progress)?;
+    Ok((relax, converged))
 }
