@@ -99,7 +99,7 @@ impl CloudOptions {
                 && !(x.is_finite() && ok(x))
             {
                 return Err(FitError::BadOption(format!(
-                    "{name} = {x} is out of range {range}"
+                    "{name} = {x:?} is out of range {range}"
                 )));
             }
         }

@@ -289,7 +289,7 @@ pub(super) fn check_extent(n: &Normalization) -> Result<(), FitError> {
 /// Checks a fit's options.
 pub fn validate_options(o: &FitOptions) -> Result<(), FitError> {
     let d = &o.dynamics;
-    let bad = |name: &str, v: f64| FitError::BadOption(format!("{name} = {v} is out of range"));
+    let bad = |name: &str, v: f64| FitError::BadOption(format!("{name} = {v:?} is out of range"));
     for (name, v, ok) in [
         ("w0", d.w0, d.w0 >= 0.0),
         ("w1", d.w1, d.w1 >= 0.0),

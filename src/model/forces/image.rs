@@ -113,7 +113,7 @@ impl std::fmt::Display for ImageError {
             }
             ImageError::BadSigma { sigma, max } => write!(
                 f,
-                "sigma = {sigma} is out of range [{MIN_SIGMA}, {max}] pixels (a third of the image's longer side)"
+                "sigma = {sigma:?} is out of range [{MIN_SIGMA}, {max}] pixels (a third of the image's longer side)"
             ),
             ImageError::BadFrame => write!(
                 f,

@@ -65,7 +65,7 @@ impl ImageChoices {
             ("beta", o.beta, o.beta > 0.0),
         ] {
             if !(ok && x.is_finite()) {
-                return Err(format!("{name} = {x} is out of range"));
+                return Err(format!("{name} = {x:?} is out of range"));
             }
         }
         crate::model::fem::check_k("k", o.k)?;
