@@ -273,6 +273,19 @@ pub struct ImageArgs {
     pub overlay: Option<PathBuf>,
 }
 
+impl Default for ImageArgs {
+    /// The image fit's defaults: one part, the default potential width, no overlay.
+    fn default() -> Self {
+        Self {
+            options: ImageFitOptions::default(),
+            sigma: DEFAULT_SIGMA,
+            parts: Vec::new(),
+            auto_parts: 1,
+            overlay: None,
+        }
+    }
+}
+
 /// A fit's resolved settings.
 pub struct Args {
     /// The data.
@@ -297,53 +310,106 @@ pub struct Args {
     pub max_steps_override: Option<u32>,
 }
 
+/// A paper experiment's settings: the point fit's options and points, or the image's.
+struct PaperBase {
+    options: FitOptions,
+    points: Option<(&'static str, Vec<DVec3>)>,
+    image: Option<(PathBuf, ImageArgs)>,
+}
+
 impl FitArgs {
     /// The fitter's settings, and the paper experiment's points for `--paper egg|mug`; an error
     /// names the option that is wrong or out of place.
-    pub fn resolve(self) -> Result<(Args, Option<Vec<DVec3>>), String> {
-        let mut o = FitOptions::default();
-        let mut image = ImageArgs {
-            options: ImageFitOptions::default(),
-            sigma: DEFAULT_SIGMA,
-            parts: Vec::new(),
-            auto_parts: 1,
-            overlay: self.out_overlay,
+    pub fn resolve(mut self) -> Result<(Args, Option<Vec<DVec3>>), String> {
+        let base = self.paper_base()?;
+        let k = match (self.nodes, self.k) {
+            (Some(n), _) => Some(k_for_nodes(n)?),
+            (None, k) => k.map(|k| k as usize),
         };
-        let mut image_path = self.image;
-        let mut paper = None;
+        let (image_path, mut image) = match base.image {
+            Some((path, image)) => (Some(path), image),
+            None => (self.image.take(), ImageArgs::default()),
+        };
+        image.overlay = self.out_overlay.take();
+        (image.options, image.sigma) = self.image_choices(k).resolve(image.options, image.sigma)?;
+        if let Some(parts) = self.parts {
+            if parts == 0 {
+                return Err("parts = 0 is out of range: it must be at least 1".into());
+            }
+            image.auto_parts = parts;
+        }
+        if !self.part.is_empty() {
+            image.parts = std::mem::take(&mut self.part);
+        }
+        let source = self.source(base.points.as_ref().map(|p| p.0), image_path)?;
+        let is_file = matches!(source, Source::File(_) | Source::Files(_));
+        if self.solver.is_some() && !is_file {
+            return Err("--solver acts on POINTS fits".into());
+        }
+        let options = self
+            .cloud_options(k)
+            .resolve(base.options, is_file)
+            .map_err(|e| e.to_string())?;
+        self.check_places(&source, &options, &image)?;
+        let args = Args {
+            source,
+            options,
+            image,
+            out_mesh: self.out_mesh,
+            out_params: self.out_params,
+            out_dir: self.out_dir,
+            quiet: self.quiet,
+            app: self.app,
+            out_scene: self.out_scene,
+            max_steps_override: self.max_steps,
+        };
+        Ok((args, base.points.map(|(_, pts)| pts)))
+    }
+
+    /// The settings `--paper` starts from: an image experiment's image and parts, or a range
+    /// experiment's points and options; the defaults without it.
+    fn paper_base(&self) -> Result<PaperBase, String> {
+        let mut base = PaperBase {
+            options: FitOptions::default(),
+            points: None,
+            image: None,
+        };
         match self.paper {
             Some(p @ (Paper::Pestle | Paper::Doll)) => {
+                if self.image.is_some() {
+                    return Err("give one of POINTS, --paper, --image or --scene".into());
+                }
                 let e = if p == Paper::Pestle {
                     pestle_experiment()
                 } else {
                     doll_experiment()
                 };
-                if image_path.is_some() {
-                    return Err("give one of POINTS, --paper, --image or --scene".into());
-                }
-                image_path = Some(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(e.image));
-                image.sigma = e.sigma;
-                image.options = e.options;
-                image.parts = e.parts.iter().map(|p| p.1).collect();
+                let image = ImageArgs {
+                    options: e.options,
+                    sigma: e.sigma,
+                    parts: e.parts.iter().map(|p| p.1).collect(),
+                    ..ImageArgs::default()
+                };
+                let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(e.image);
+                base.image = Some((path, image));
             }
             Some(p @ (Paper::Egg | Paper::Mug)) => {
-                let (pts, opts, name) = if p == Paper::Egg {
-                    let (pts, opts) = synthetic::egg_experiment();
-                    (pts, opts, "egg")
+                let ((pts, opts), name) = if p == Paper::Egg {
+                    (synthetic::egg_experiment(), "egg")
                 } else {
-                    let (pts, opts) = synthetic::mug_experiment();
-                    (pts, opts, "mug")
+                    (synthetic::mug_experiment(), "mug")
                 };
-                paper = Some((name, pts));
-                o = opts;
+                base.points = Some((name, pts));
+                base.options = opts;
             }
             None => {}
         }
-        let k = match (self.nodes, self.k) {
-            (Some(n), _) => Some(k_for_nodes(n)?),
-            (None, k) => k.map(|k| k as usize),
-        };
-        (image.options, image.sigma) = ImageChoices {
+        Ok(base)
+    }
+
+    /// The image fit's flags, tessellation `k`.
+    fn image_choices(&self, k: Option<usize>) -> ImageChoices {
+        ImageChoices {
             global_only: self.global_only,
             paper_band: self.paper_band,
             free_depth: self.free_depth,
@@ -360,17 +426,11 @@ impl FitArgs {
             beta: self.beta,
             max_steps: self.max_steps.map(|n| n as usize),
         }
-        .resolve(image.options, image.sigma)?;
-        if let Some(parts) = self.parts {
-            if parts == 0 {
-                return Err("parts = 0 is out of range: it must be at least 1".into());
-            }
-            image.auto_parts = parts;
-        }
-        if !self.part.is_empty() {
-            image.parts = self.part;
-        }
-        let cloud = CloudOptions {
+    }
+
+    /// The point fit's flags, tessellation `k`.
+    fn cloud_options(&self, k: Option<usize>) -> CloudOptions {
+        CloudOptions {
             global_only: self.global_only,
             solver: self.solver.map(|s| match s {
                 SolverArg::Solved => Solver::Solved,
@@ -395,81 +455,77 @@ impl FitArgs {
             max_steps: self.max_steps,
             reassign: self.reassign,
             implicit_local: self.implicit_local,
-        };
-        let mut points = self.points;
-        let source = match (points.len(), paper.as_ref(), image_path, self.scene) {
+        }
+    }
+
+    /// The one input given: POINTS files, the paper experiment `paper`, an image or a scene.
+    fn source(
+        &mut self,
+        paper: Option<&'static str>,
+        image: Option<PathBuf>,
+    ) -> Result<Source, String> {
+        let points = &mut self.points;
+        Ok(match (points.len(), paper, image, self.scene.take()) {
             (1, None, None, None) if self.out_dir.is_none() => Source::File(points.remove(0)),
-            (1.., None, None, None) => Source::Files(points),
-            (0, Some((name, _)), None, None) => Source::Paper(name),
+            (1.., None, None, None) => Source::Files(std::mem::take(points)),
+            (0, Some(name), None, None) => Source::Paper(name),
             (0, None, Some(p), None) => Source::Image(p),
             (0, None, None, Some(p)) => Source::Scene(p),
             (0, None, None, None) => {
                 return Err("no POINTS file given (dsq fit --help lists the inputs)".into());
             }
             _ => return Err("give one of POINTS, --paper, --image or --scene".into()),
-        };
-        if matches!(source, Source::Files(_)) {
+        })
+    }
+
+    /// Refuses a flag given where `source` cannot honour it.
+    fn check_places(
+        &self,
+        source: &Source,
+        options: &FitOptions,
+        image: &ImageArgs,
+    ) -> Result<(), String> {
+        let is_file = matches!(source, Source::File(_) | Source::Files(_));
+        let refused = |why: &str| Err(why.to_string());
+        if let Source::Files(_) = source {
             if self.out_mesh.is_some() || self.out_params.is_some() {
-                return Err(
-                    "--out-mesh and --out-params write one fit; with several POINTS files give --out-dir"
-                        .into(),
+                return refused(
+                    "--out-mesh and --out-params write one fit; with several POINTS files give --out-dir",
                 );
             }
             if self.app {
-                return Err("--app fits one POINTS file at a time".into());
+                return refused("--app fits one POINTS file at a time");
             }
             if image.auto_parts > 1 {
-                return Err("--parts splits one POINTS file at a time".into());
+                return refused("--parts splits one POINTS file at a time");
             }
         } else if self.out_dir.is_some() {
-            return Err("--out-dir acts on POINTS files".into());
+            return refused("--out-dir acts on POINTS files");
         }
-        let is_file = matches!(source, Source::File(_) | Source::Files(_));
-        if self.solver.is_some() && !is_file {
-            return Err("--solver acts on POINTS fits".into());
-        }
-        let options = cloud.resolve(o, is_file).map_err(|e| e.to_string())?;
+        let image_or_scene = matches!(source, Source::Image(_) | Source::Scene(_));
         if self.paper_forces && !is_file {
-            return Err(
-                "--paper-forces acts on POINTS fits (--paper, --image and --scene keep their own settings)"
-                    .into(),
+            return refused(
+                "--paper-forces acts on POINTS fits (--paper, --image and --scene keep their own settings)",
             );
         }
         if self.out_scene.is_some() && !matches!(source, Source::Scene(_)) {
-            return Err("--out-scene needs --scene".into());
+            return refused("--out-scene needs --scene");
         }
-        if (self.taper || self.bend) && matches!(source, Source::Image(_) | Source::Scene(_)) {
-            return Err(
-                "--taper and --bend act on point fits; a scene part frees them with free: (taper: true, bend: true)"
-                    .into(),
+        if (self.taper || self.bend) && image_or_scene {
+            return refused(
+                "--taper and --bend act on point fits; a scene part frees them with free: (taper: true, bend: true)",
             );
         }
-        if options.noise_stiffness != NoiseStiffness::Off
-            && matches!(source, Source::Image(_) | Source::Scene(_))
-        {
-            return Err(
-                "--w1 auto reads the noise of a point cloud; give w1 a number for images and scenes"
-                    .into(),
+        if options.noise_stiffness != NoiseStiffness::Off && image_or_scene {
+            return refused(
+                "--w1 auto reads the noise of a point cloud; give w1 a number for images and scenes",
             );
         }
         if self.app && !cfg!(feature = "bevy") {
-            return Err(
-                "--app runs the fit through the Bevy plugin: build dsq with the `bevy` feature"
-                    .into(),
+            return refused(
+                "--app runs the fit through the Bevy plugin: build dsq with the `bevy` feature",
             );
         }
-        let args = Args {
-            source,
-            options,
-            image,
-            out_mesh: self.out_mesh,
-            out_params: self.out_params,
-            out_dir: self.out_dir,
-            quiet: self.quiet,
-            app: self.app,
-            out_scene: self.out_scene,
-            max_steps_override: self.max_steps,
-        };
-        Ok((args, paper.map(|(_, pts)| pts)))
+        Ok(())
     }
 }
