@@ -128,7 +128,7 @@ fn a_fit_from_a_global_only_model_keeps_its_settings_and_its_membrane_still() {
     until_done(&mut app, e);
     assert_eq!(*app.world().get::<ModelSettings>(e).unwrap(), settings);
     let report = report_of(&app, e);
-    assert!(report.converged && report.solver == Solver::Solved);
+    assert!(report.converged && report.options.solver == Solver::Solved);
     let state = state_of(&app, e);
     assert!(state.displacement.iter().all(|d| *d == DVec3::ZERO));
     // A pure fit of a superquadric cloud: its axes recovered.
@@ -180,7 +180,7 @@ fn every_option_set_in_the_plugin_is_the_cores() {
         until_done(&mut app, e);
         let core = fit(&points, &options, |_| {}).unwrap();
         let plugin = report_of(&app, e);
-        assert_eq!(plugin.solver, core.solver);
+        assert_eq!(plugin.options.solver, core.options.solver);
         assert_eq!(plugin.steps, core.steps, "{options:?}");
         assert_eq!(state_of(&app, e), core.state, "{options:?}");
         assert_eq!(app.world().get::<FemMesh>(e).unwrap().k, core.tess.k);
@@ -192,7 +192,7 @@ fn every_option_set_in_the_plugin_is_the_cores() {
         .entity_mut(e)
         .insert(FitDriver::new(cases[0]));
     until_done(&mut app, e);
-    assert_eq!(report_of(&app, e).solver, Solver::Dynamics);
+    assert_eq!(report_of(&app, e).options.solver, Solver::Dynamics);
     assert_eq!(app.world().get::<FemMesh>(e).unwrap().k, 15);
 }
 
@@ -286,7 +286,7 @@ fn the_fitter_through_a_headless_app_gives_the_core_fit_bit_for_bit() {
         assert_eq!(app.state, core.state, "{opts:?}: states differ");
         assert_eq!(app.residuals, core.residuals);
         assert_eq!(app.tess.k, core.tess.k);
-        assert_eq!(app.solver, core.solver);
+        assert_eq!(app.options.solver, core.options.solver);
         retessellated |= core.tess.k > opts.k;
     }
     assert!(retessellated, "no case went on to a finer tessellation");

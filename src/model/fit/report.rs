@@ -35,10 +35,9 @@ pub struct FitReport {
     /// Initial pose the fit started from (data frame): the chosen hypothesis, or the similarity
     /// candidate the fit moved to.
     pub initial: InitialPose,
-    /// The solver that ran ([`FitOptions::solver`]).
-    pub solver: Solver,
     /// The options the fit ran with: those given, with the membrane's stiffness chosen from the
-    /// noise where they asked ([`FitOptions::noise_stiffness`]).
+    /// noise where they asked ([`FitOptions::noise_stiffness`]); `options.solver` is the solver
+    /// that ran.
     pub options: FitOptions,
     /// The noise the points show, when the stiffness was chosen from it.
     pub noise: Option<NoiseEstimate>,
@@ -63,7 +62,6 @@ impl FitReport {
             converged: outcome.converged,
             substepped_steps: outcome.substepped_steps,
             residuals,
-            solver: ctx.opts.solver,
             options: ctx.opts,
             noise: ctx.noise,
         }
@@ -91,7 +89,7 @@ impl FitReport {
             steps: self.steps,
             global_steps: self.global_steps,
             converged: self.converged,
-            solver: self.solver,
+            solver: self.options.solver,
             global_only: self.options.global_only,
             residuals: self.residuals,
             noise: self.noise.map(|e| e.relative),
