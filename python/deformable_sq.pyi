@@ -6,7 +6,7 @@ input raises ``ValueError`` with the one-line message ``dsq`` prints.
 """
 
 from os import PathLike
-from typing import Literal, Sequence, TypedDict
+from typing import Any, Literal, Sequence, TypedDict
 
 import numpy as np
 import numpy.typing as npt
@@ -125,6 +125,29 @@ def fit(
 ) -> FitResult:
     """Fits a deformable superquadric to an (N, 3) array of points with ``dsq fit``'s defaults
     for a cloud; each keyword is the flag of the same name (docs/cli.md)."""
+
+class PartsResult:
+    """A whole object fitted as parts."""
+
+    @property
+    def parts(self) -> list[FitResult]:
+        """Each part's fit, as ``fit`` returns it."""
+    @property
+    def owner(self) -> npt.NDArray[np.int64]:
+        """The part of each point (the one whose surface is nearest), an (N,) array."""
+    @property
+    def joints(self) -> list[tuple[int, int, tuple[float, float, float]]]:
+        """The joints between parts that touch: (part i, part j, where they touch)."""
+    def __len__(self) -> int: ...
+
+def fit_parts(
+    points: npt.ArrayLike,
+    parts: Literal["auto"] | int = "auto",
+    max_parts: int | None = None,
+    **options: Any,
+) -> PartsResult:
+    """Fits a whole object: the points split into parts as ``dsq fit --parts`` splits a cloud,
+    ``"auto"`` (at most ``max_parts``, default 12) or a count; ``options`` are ``fit``'s keywords."""
 
 def load_points(path: str | PathLike[str]) -> npt.NDArray[np.float64]:
     """The points of an OBJ (its vertices) or PLY file as an (N, 3) array."""

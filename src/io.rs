@@ -372,14 +372,40 @@ pub fn write_model_obj(
     tess: &Tessellation,
     state: &ModelState,
 ) -> Result<(), IoError> {
-    let mut x = Vec::new();
-    state.node_positions(tess, &mut x);
-    let comment = format!(
-        "deformable superquadric: {} nodes (k = {}), written by bevy_deformable_sq",
-        tess.node_count(),
-        tess.k
+    write_models_obj(path, &[(tess, state)])
+}
+
+/// Writes several models' closed surfaces (world units) into one triangle OBJ, each its own
+/// object (`o part_J`) and its own connected mesh.
+pub fn write_models_obj(
+    path: &Path,
+    models: &[(&Tessellation, &ModelState)],
+) -> Result<(), IoError> {
+    use std::fmt::Write as _;
+    let mut s = String::new();
+    let nodes: usize = models.iter().map(|(t, _)| t.node_count()).sum();
+    let _ = writeln!(
+        s,
+        "# {} deformable superquadric{}: {nodes} nodes, written by bevy_deformable_sq",
+        models.len(),
+        if models.len() == 1 { "" } else { "s" }
     );
-    write_obj(path, &x, tess.triangles(), &comment)
+    let mut x = Vec::new();
+    let mut base = 1;
+    for (j, (tess, state)) in models.iter().enumerate() {
+        state.node_positions(tess, &mut x);
+        if models.len() > 1 {
+            let _ = writeln!(s, "o part_{j}");
+        }
+        for v in &x {
+            let _ = writeln!(s, "v {} {} {}", v.x, v.y, v.z);
+        }
+        for t in tess.triangles() {
+            let _ = writeln!(s, "f {} {} {}", t[0] + base, t[1] + base, t[2] + base);
+        }
+        base += x.len() as u32;
+    }
+    std::fs::write(path, s).map_err(|e| err(path, format!("cannot write: {e}")))
 }
 
 #[cfg(test)]

@@ -58,6 +58,7 @@ mod format;
 mod load;
 mod part;
 mod validate;
+mod whole;
 pub use format::*;
 pub use load::*;
 #[cfg(feature = "bevy")]

@@ -8,12 +8,18 @@
 //! * [`superquadric_cloud`]: points on a superquadric with known pose and parameters.
 //! * [`ground_truth_cloud`]: a random superquadric seen as EMS's paper tests its fitter — a
 //!   partial view, noise and outliers — with [`ParameterErrors`] to score a fit against it.
+//! * [`union_cloud`]: a whole object of known parts, a body with limbs, whole or seen from one
+//!   side.
 
 use crate::model::fit::{FitOptions, Initialization, Solver};
 use crate::model::init::{InitialPose, moments};
 use crate::model::superquadric::{SuperquadricParams, shape_at};
 use glam::{DQuat, DVec3};
 use std::f64::consts::{FRAC_PI_2, PI};
+
+mod union;
+
+pub use union::{UnionCloud, union_cloud};
 
 /// A small deterministic generator (SplitMix64), so data and tests are the same on every machine.
 #[derive(Clone, Debug)]

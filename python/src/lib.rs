@@ -11,7 +11,8 @@ use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{FitReport, FitSummary, fit as fit_cloud};
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::frame::rotation_matrix;
-use bevy_deformable_sq::model::image_fit::{ImagePartFit, PartAxes, fit_image as fit_parts};
+use bevy_deformable_sq::model::image_fit::{ImagePartFit, PartAxes, fit_image as fit_image_parts};
+use bevy_deformable_sq::model::parts::{Whole, fit_parts as fit_whole};
 use bevy_deformable_sq::synthetic::Rng;
 use glam::{DVec2, DVec3};
 use numpy::ndarray::Array2;
@@ -292,6 +293,78 @@ fn fit(
     })
 }
 
+/// A whole object fitted as parts: each part's fit, the part of every point, and the joints.
+#[pyclass(module = "deformable_sq", frozen)]
+struct PartsResult {
+    whole: Whole,
+}
+
+#[pymethods]
+impl PartsResult {
+    /// Each part's fit, as `fit` returns it.
+    #[getter]
+    fn parts(&self) -> Vec<FitResult> {
+        self.whole
+            .fits
+            .iter()
+            .map(|report| FitResult {
+                summary: report.summary(),
+                report: report.clone(),
+            })
+            .collect()
+    }
+
+    /// The part of each point (the one whose surface is nearest), an (N,) int64 array.
+    #[getter]
+    fn owner<'py>(&self, py: Python<'py>) -> Bound<'py, numpy::PyArray1<i64>> {
+        let owner: Vec<i64> = self.whole.owner.iter().map(|&o| o as i64).collect();
+        owner.into_pyarray(py)
+    }
+
+    /// The joints between the parts that touch: (part i, part j, [x, y, z] where they touch).
+    #[getter]
+    fn joints(&self) -> Vec<(usize, usize, [f64; 3])> {
+        self.whole
+            .joints
+            .iter()
+            .map(|j| (j.parts[0], j.parts[1], j.at.to_array()))
+            .collect()
+    }
+
+    fn __len__(&self) -> usize {
+        self.whole.fits.len()
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "PartsResult({} parts, {} joints)",
+            self.whole.fits.len(),
+            self.whole.joints.len()
+        )
+    }
+}
+
+/// Fits a whole object: `points`, an (N, 3) array, split into parts as `dsq fit --parts`
+/// splits a cloud. `parts`: "auto" (as many as the description length asks, at most
+/// `max_parts`) or a count; the other keywords are `fit`'s.
+#[pyfunction]
+#[pyo3(signature = (points, parts = None, max_parts = None, **options))]
+fn fit_parts(
+    py: Python<'_>,
+    points: &Bound<'_, PyAny>,
+    parts: Option<&Bound<'_, PyAny>>,
+    max_parts: Option<usize>,
+    options: Option<&Bound<'_, PyDict>>,
+) -> PyResult<PartsResult> {
+    let points = points_of(points)?;
+    let count = options::part_count(parts, max_parts)?;
+    let options = options::cloud_options(options)?;
+    let whole = py
+        .detach(|| fit_whole(&points, count, &options))
+        .map_err(value_error)?;
+    Ok(PartsResult { whole })
+}
+
 /// The points of an OBJ (its vertices) or PLY file, as an (N, 3) float64 array.
 #[pyfunction]
 fn load_points<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyArray2<f64>>> {
@@ -431,7 +504,7 @@ fn fit_image(
         return Err(value_error("parts: give at least one part"));
     }
     let fits = py
-        .detach(|| fit_parts(potential, &placed, &opts))
+        .detach(|| fit_image_parts(potential, &placed, &opts))
         .map_err(value_error)?;
     let tess = Tessellation::new(opts.k);
     Ok(fits
@@ -448,6 +521,8 @@ fn fit_image(
 fn deformable_sq(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(fit, m)?)?;
     m.add_function(wrap_pyfunction!(fit_image, m)?)?;
+    m.add_function(wrap_pyfunction!(fit_parts, m)?)?;
+    m.add_class::<PartsResult>()?;
     m.add_function(wrap_pyfunction!(load_points, m)?)?;
     m.add_class::<FitResult>()?;
     m.add_class::<ImagePart>()?;

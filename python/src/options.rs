@@ -6,6 +6,7 @@ use crate::value_error;
 use bevy_deformable_sq::model::fit::{CloudOptions, FitOptions, Solver, Stiffness, k_for_nodes};
 use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
 use bevy_deformable_sq::model::image_fit::{ImageChoices, ImageFitOptions};
+use bevy_deformable_sq::model::parts::{DEFAULT_MAX_PARTS, PartCount};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -145,6 +146,36 @@ pub fn cloud_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<FitOptions
         }
     }
     c.resolve(FitOptions::default(), true).map_err(value_error)
+}
+
+/// `fit_parts`'s `parts` and `max_parts`: "auto" (the default) or a count of at least 1; a cap
+/// of at least 1, only with "auto".
+pub fn part_count(
+    parts: Option<&Bound<'_, PyAny>>,
+    max_parts: Option<usize>,
+) -> PyResult<PartCount> {
+    if max_parts == Some(0) {
+        return Err(value_error(
+            "max_parts = 0 is out of range: it must be at least 1",
+        ));
+    }
+    let n: usize = match parts {
+        Some(v) if !v.extract::<String>().is_ok_and(|s| s == "auto") => {
+            value("parts", v, "\"auto\" or a whole number")?
+        }
+        _ => return Ok(PartCount::Auto(max_parts.unwrap_or(DEFAULT_MAX_PARTS))),
+    };
+    if n == 0 {
+        return Err(value_error(
+            "parts = 0 is out of range: it must be at least 1",
+        ));
+    }
+    if max_parts.is_some() {
+        return Err(value_error(
+            "max_parts caps parts=\"auto\"; give parts=\"auto\"",
+        ));
+    }
+    Ok(PartCount::Exact(n))
 }
 
 /// `fit_image`'s keywords resolved as `dsq fit --image` resolves its flags, and the

@@ -263,3 +263,26 @@ def test_every_image_keyword_fits_finitely_or_raises_value_error(key):
             continue
         for p in parts:
             assert np.isfinite(p.translation).all() and np.isfinite(p.epsilon).all(), (key, v)
+
+
+def test_fit_parts_splits_two_separate_superquadrics_as_dsq_does(tmp_path):
+    a = superquadric_cloud((0.5, 0.5, 1.0), 0.5, 1.0, 600, 0.0, 31)
+    b = superquadric_cloud((0.6, 0.4, 0.4), 1.0, 0.4, 600, 0.0, 32) + np.array([3.0, 0.0, 0.0])
+    points = np.vstack([a, b])
+    whole = d.fit_parts(points)
+    assert len(whole) == 2
+    owner = whole.owner
+    assert owner.shape == (1200,)
+    assert len(set(owner[:600])) == 1 and len(set(owner[600:])) == 1
+    assert owner[0] != owner[600]
+    for part in whole.parts:
+        assert part.residuals["mean"] < 0.01 * 4.0
+    path = write_ply(tmp_path / "two.ply", points)
+    out = tmp_path / "params.json"
+    run = dsq(path, "--quiet", "--parts", "auto", "--out-params", out)
+    assert run.returncode == 0, run.stderr
+    assert [p.to_dict() for p in whole.parts] == json.loads(out.read_text())
+    with pytest.raises(ValueError, match="max_parts caps"):
+        d.fit_parts(points, parts=2, max_parts=3)
+    with pytest.raises(ValueError, match="parts = 0"):
+        d.fit_parts(points, parts=0)

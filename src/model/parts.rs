@@ -13,10 +13,18 @@ use super::dynamics::ModelState;
 use super::fem::Tessellation;
 use super::fit::{
     FitError, FitOptions, FitReport, Initialization, MIN_POINTS, fit, point_distances,
+    validate_points,
 };
 use super::init::InitialPose;
 use super::parallel::run_parallel;
 use glam::DVec3;
+
+mod joints;
+mod spectral;
+mod split;
+
+pub use joints::{PartJoint, joints};
+pub use split::{DEFAULT_MAX_PARTS, PART_PARAMETERS, PartCount, Scale, TOLERANCE, split};
 
 /// k-means clusters of `points`: the cluster of each point. Seeds: the point farthest from the
 /// centroid, then repeatedly the point farthest from every seed so far; then `iterations` Lloyd
@@ -93,6 +101,20 @@ pub struct Partition {
     pub stable: bool,
     /// How many points the last round moved to another part.
     pub moved: usize,
+}
+
+/// A whole object fitted as parts ([`split`], [`fit_parts`]).
+#[derive(Clone, Debug)]
+pub struct Whole {
+    /// The fit of each part, in data units.
+    pub fits: Vec<FitReport>,
+    /// The part each data point belongs to (index into `fits`): the one whose surface is
+    /// nearest.
+    pub owner: Vec<usize>,
+    /// The joints between the parts that touch.
+    pub joints: Vec<PartJoint>,
+    /// The description length's scale (see [`split`]).
+    pub scale: Scale,
 }
 
 /// Checks that `n` points can be split into `parts`: at least one part, and [`MIN_POINTS`] points
@@ -202,28 +224,38 @@ pub fn partition(
     })
 }
 
-/// Fits `k` parts to `points` (see the module docs), at most `rounds` rounds: the [`partition`]
-/// of `k` parts fitted with `opts` from k-means clusters, then, when `opts` has local DOFs, each
-/// part fitted once more with them to its points from its last global fit. Errors as
-/// [`partition`]'s.
-pub fn fit_parts(
-    points: &[DVec3],
-    k: usize,
-    rounds: u32,
-    opts: &FitOptions,
-) -> Result<Partition, FitError> {
-    check_parts(points.len(), k)?;
-    let each = vec![
-        FitOptions {
-            init: Initialization::Moments,
-            ..*opts
-        };
-        k
-    ];
-    let mut split = partition(points, &each, rounds)?;
+/// Fits a whole object: `points` split into parts, each a pure superquadric fitted with `opts`;
+/// then, when `opts` has local DOFs, each part fitted once more with them to its points, from
+/// its pure fit; and the parts that touch joined ([`joints`]). [`PartCount::Auto`]: by
+/// description length ([`split`]); [`PartCount::Exact`]: the [`partition`] of that many parts
+/// from k-means clusters, [`PARTITION_ROUNDS`] rounds at most. Errors as theirs.
+pub fn fit_parts(points: &[DVec3], count: PartCount, opts: &FitOptions) -> Result<Whole, FitError> {
+    let mut whole = match count {
+        PartCount::Auto(_) => split(points, count, opts)?,
+        PartCount::Exact(k) => {
+            validate_points(points)?;
+            check_parts(points.len(), k)?;
+            let each = vec![
+                FitOptions {
+                    init: Initialization::Moments,
+                    ..*opts
+                };
+                k
+            ];
+            let p = partition(points, &each, PARTITION_ROUNDS)?;
+            let scale = Scale::of(points);
+            Whole {
+                joints: joints(&p.fits, scale.tau),
+                fits: p.fits,
+                owner: p.owner,
+                scale,
+            }
+        }
+    };
     if super::fit::has_joint_stage(opts) {
-        let members = members_of(points, &split.owner, k);
-        let joint: Vec<FitOptions> = split
+        let k = whole.fits.len();
+        let members = members_of(points, &whole.owner, k);
+        let joint: Vec<FitOptions> = whole
             .fits
             .iter()
             .map(|f| FitOptions {
@@ -231,9 +263,11 @@ pub fn fit_parts(
                 ..*opts
             })
             .collect();
-        split.fits = fit_each(&members, &joint)?;
+        whole.fits = fit_each(&members, &joint)?;
+        whole.owner = nearest_surface(points, whole.fits.iter().map(|f| (&f.tess, &f.state)));
+        whole.joints = joints(&whole.fits, whole.scale.tau);
     }
-    Ok(split)
+    Ok(whole)
 }
 
 /// The index of the surface nearest each point, among `surfaces` (tessellation and state).
@@ -317,7 +351,12 @@ mod tests {
         let c_body = DVec3::ZERO;
         let c_post = DVec3::new(1.45, 0.0, 0.6);
         let (points, n_body) = two_clouds((&body, c_body, 600), (&post, c_post, 500), 0.01);
-        let report = fit_parts(&points, 2, 6, &FitOptions::default().for_data()).expect("fit");
+        let report = fit_parts(
+            &points,
+            PartCount::Exact(2),
+            &FitOptions::default().for_data(),
+        )
+        .expect("fit");
         assert_eq!(report.owner.len(), points.len());
         assert!(report.owner.iter().all(|&o| o < 2));
         // Each true object ends up (almost) all in one part, a different one for each.
@@ -382,7 +421,8 @@ mod tests {
             1,
         );
         for parts in [3, 0, usize::MAX] {
-            let e = fit_parts(&points, parts, 2, &FitOptions::default()).unwrap_err();
+            let e =
+                fit_parts(&points, PartCount::Exact(parts), &FitOptions::default()).unwrap_err();
             assert!(
                 e.to_string()
                     .contains(&format!("parts = {parts} is out of range [1, 2]")),

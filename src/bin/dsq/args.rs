@@ -10,6 +10,7 @@ use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
 use bevy_deformable_sq::model::image_fit::{
     ImageChoices, ImageFitOptions, doll_experiment, pestle_experiment,
 };
+use bevy_deformable_sq::model::parts::{DEFAULT_MAX_PARTS, PartCount};
 use bevy_deformable_sq::synthetic;
 use clap::{Args as ClapArgs, ValueEnum};
 use glam::{DVec2, DVec3};
@@ -142,9 +143,13 @@ pub struct FitArgs {
     /// Reattach the points every N steps (the paper: 200; at least 1).
     #[arg(long, value_name = "N", help_heading = "Point clouds")]
     pub reassign: Option<u32>,
-    /// Fit N parts (a cloud split among them, or the N largest blobs of an image; at least 1).
+    /// Split a cloud into parts: `auto` (as many as its description length asks, see
+    /// --max-parts) or exactly N; an image: its N largest blobs (at least 1).
+    #[arg(long, value_name = "auto|N", value_parser = parts_arg, help_heading = "Point clouds")]
+    pub parts: Option<PartsArg>,
+    /// With --parts auto: at most N parts (default 12, `model::parts::DEFAULT_MAX_PARTS`).
     #[arg(long, value_name = "N", help_heading = "Point clouds")]
-    pub parts: Option<usize>,
+    pub max_parts: Option<usize>,
     /// Run the fit through the Bevy plugin in a headless app (needs the `bevy` feature).
     #[arg(long, help_heading = "Point clouds")]
     pub app: bool,
@@ -203,6 +208,24 @@ fn non_negative(v: &str) -> Result<f64, String> {
     } else {
         Err(format!("{x} must be a finite number ≥ 0"))
     }
+}
+
+/// `--parts`: `auto` or a count.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PartsArg {
+    /// As many as the cloud's description length asks.
+    Auto,
+    /// Exactly this many.
+    Count(usize),
+}
+
+fn parts_arg(v: &str) -> Result<PartsArg, String> {
+    if v == "auto" {
+        return Ok(PartsArg::Auto);
+    }
+    v.parse::<usize>()
+        .map(PartsArg::Count)
+        .map_err(|_| format!("{v:?} is neither `auto` nor a whole number of parts"))
 }
 
 fn positive(v: &str) -> Result<f64, String> {
@@ -308,6 +331,8 @@ pub struct Args {
     pub out_scene: Option<PathBuf>,
     /// `--max-steps` as given (a scene caps each part with it).
     pub max_steps_override: Option<u32>,
+    /// `--parts` on a cloud: how many parts to split it into (`None`: one).
+    pub cloud_parts: Option<PartCount>,
 }
 
 /// A paper experiment's settings: the point fit's options and points, or the image's.
@@ -332,12 +357,21 @@ impl FitArgs {
         };
         image.overlay = self.out_overlay.take();
         (image.options, image.sigma) = self.image_choices(k).resolve(image.options, image.sigma)?;
-        if let Some(parts) = self.parts {
-            if parts == 0 {
+        let cloud_parts = match (self.parts, self.max_parts) {
+            (Some(PartsArg::Count(0)), _) => {
                 return Err("parts = 0 is out of range: it must be at least 1".into());
             }
-            image.auto_parts = parts;
-        }
+            (_, Some(0)) => {
+                return Err("max-parts = 0 is out of range: it must be at least 1".into());
+            }
+            (Some(PartsArg::Count(n)), None) => {
+                image.auto_parts = n;
+                (n > 1).then_some(PartCount::Exact(n))
+            }
+            (Some(PartsArg::Auto), cap) => Some(PartCount::Auto(cap.unwrap_or(DEFAULT_MAX_PARTS))),
+            (_, Some(_)) => return Err("--max-parts caps --parts auto; give --parts auto".into()),
+            (None, None) => None,
+        };
         if !self.part.is_empty() {
             image.parts = std::mem::take(&mut self.part);
         }
@@ -350,7 +384,7 @@ impl FitArgs {
             .cloud_options(k)
             .resolve(base.options, is_file)
             .map_err(|e| e.to_string())?;
-        self.check_places(&source, &options, &image)?;
+        self.check_places(&source, &options)?;
         let args = Args {
             source,
             options,
@@ -362,6 +396,7 @@ impl FitArgs {
             app: self.app,
             out_scene: self.out_scene,
             max_steps_override: self.max_steps,
+            cloud_parts,
         };
         Ok((args, base.points.map(|(_, pts)| pts)))
     }
@@ -479,12 +514,7 @@ impl FitArgs {
     }
 
     /// Refuses a flag given where `source` cannot honour it.
-    fn check_places(
-        &self,
-        source: &Source,
-        options: &FitOptions,
-        image: &ImageArgs,
-    ) -> Result<(), String> {
+    fn check_places(&self, source: &Source, options: &FitOptions) -> Result<(), String> {
         let is_file = matches!(source, Source::File(_) | Source::Files(_));
         let refused = |why: &str| Err(why.to_string());
         if let Source::Files(_) = source {
@@ -496,7 +526,7 @@ impl FitArgs {
             if self.app {
                 return refused("--app fits one POINTS file at a time");
             }
-            if image.auto_parts > 1 {
+            if self.parts.is_some_and(|p| p != PartsArg::Count(1)) {
                 return refused("--parts splits one POINTS file at a time");
             }
         } else if self.out_dir.is_some() {
@@ -508,8 +538,17 @@ impl FitArgs {
                 "--paper-forces acts on POINTS fits (--paper, --image and --scene keep their own settings)",
             );
         }
-        if self.out_scene.is_some() && !matches!(source, Source::Scene(_)) {
-            return refused("--out-scene needs --scene");
+        let split = self.parts.is_some_and(|p| p != PartsArg::Count(1));
+        if self.parts == Some(PartsArg::Auto) && image_or_scene {
+            return refused("--parts auto splits a point cloud; an image takes a count of blobs");
+        }
+        if self.parts.is_some() && matches!(source, Source::Scene(_)) {
+            return refused("--parts acts on a POINTS file or an image; a scene lists its parts");
+        }
+        if self.out_scene.is_some()
+            && !(matches!(source, Source::Scene(_)) || (split && !image_or_scene))
+        {
+            return refused("--out-scene needs --scene, or --parts on a POINTS file");
         }
         if (self.taper || self.bend) && image_or_scene {
             return refused(

@@ -3,7 +3,7 @@
 
 use crate::args::{Args, Source};
 use bevy_deformable_sq::io::{
-    load_luminance, load_points, write_model_obj, write_obj, write_overlay_png,
+    load_luminance, load_points, write_model_obj, write_models_obj, write_obj, write_overlay_png,
 };
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
@@ -15,7 +15,7 @@ use bevy_deformable_sq::model::image_fit::{
     ImagePartFit, PartAxes, fit_image, outline_potential, outline_segments, part_silhouette,
     parts_on, segment, silhouette_iou,
 };
-use bevy_deformable_sq::model::parts::fit_parts;
+use bevy_deformable_sq::model::parts::{PartCount, fit_parts};
 use bevy_deformable_sq::scene::{PartRun, SceneData, SceneDef, Split, run_scene};
 use glam::DVec3;
 use std::path::Path;
@@ -48,8 +48,8 @@ pub fn run(args: Args, paper_points: Option<Vec<DVec3>>) -> Result<(), String> {
         (Source::Paper(name), Some(pts)) => (pts, format!("paper:{name}")),
         (Source::Paper(name), None) => return Err(format!("no data for --paper {name}")),
     };
-    if args.image.auto_parts > 1 {
-        return run_parts(&points, &name, &args.options, &args);
+    if let Some(count) = args.cloud_parts {
+        return run_parts(&points, &name, count, &args);
     }
     let (summary, report) = fit_points(&points, &name, &args, !args.quiet)?;
     if let Some(path) = &args.out_mesh {
@@ -107,33 +107,46 @@ pub fn fit_points(
     Ok((summary, report))
 }
 
-/// `POINTS --parts N`: N parts on one cloud (`model::parts`), one JSON line per part (the point
-/// fitter's, with `part` and its point count) and one for the whole.
-fn run_parts(
-    points: &[DVec3],
-    name: &str,
-    options: &FitOptions,
-    args: &Args,
-) -> Result<(), String> {
+/// `POINTS --parts auto|N`: the cloud split into parts (`model::parts`), one JSON line per part
+/// (the point fitter's, with `part` and its point count) and one for the whole; `--out-mesh`
+/// writes every part into one OBJ, `--out-params` every part's parameters.
+fn run_parts(points: &[DVec3], name: &str, count: PartCount, args: &Args) -> Result<(), String> {
     if args.app {
         return Err("--app fits one part; drop it or --parts".into());
     }
-    let k = args.image.auto_parts;
     let start = Instant::now();
-    let report = fit_parts(points, k, 8, options).map_err(|e| format!("{name}: {e}"))?;
+    let whole = fit_parts(points, count, &args.options).map_err(|e| format!("{name}: {e}"))?;
     let wall = start.elapsed();
-    for (j, part) in report.fits.iter().enumerate() {
-        let n = report.owner.iter().filter(|&&o| o == j).count();
+    let mut summaries = Vec::new();
+    for (j, part) in whole.fits.iter().enumerate() {
+        let n = whole.owner.iter().filter(|&&o| o == j).count();
         let mut line = range_summary(name, part, n, wall, "core");
         line["part"] = serde_json::json!(j);
         crate::emit(&line);
+        summaries.push(part.summary());
     }
+    if let Some(path) = &args.out_mesh {
+        let models: Vec<_> = whole.fits.iter().map(|f| (&f.tess, &f.state)).collect();
+        write_models_obj(path, &models).map_err(|e| e.to_string())?;
+    }
+    if let Some(path) = &args.out_params {
+        let json = serde_json::to_string_pretty(&summaries).map_err(|e| e.to_string())?;
+        std::fs::write(path, json).map_err(|e| format!("{}: cannot write: {e}", path.display()))?;
+    }
+    if let Some(path) = &args.out_scene {
+        let Source::File(points_file) = &args.source else {
+            return Err("--out-scene with --parts needs a POINTS file".into());
+        };
+        SceneDef::of_whole(points_file, path, &whole)
+            .save(path)
+            .map_err(|e| e.to_string())?;
+    }
+    let joints: Vec<[usize; 2]> = whole.joints.iter().map(|j| j.parts).collect();
     crate::emit(serde_json::json!({
         "file": name,
-        "parts": k,
+        "parts": whole.fits.len(),
+        "joints": joints,
         "points": points.len(),
-        "rounds": report.rounds,
-        "stable": report.stable,
         "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
     }));
     Ok(())

@@ -1,0 +1,150 @@
+//! Whole objects split into parts (`model::parts`), pinned to generated truth.
+
+use bevy_deformable_sq::model::fit::{FitOptions, bounding_diagonal, point_distances};
+use bevy_deformable_sq::model::parts::{DEFAULT_MAX_PARTS, PartCount, Whole, fit_parts};
+use bevy_deformable_sq::model::superquadric::SuperquadricParams;
+use bevy_deformable_sq::scene::SceneDef;
+use bevy_deformable_sq::synthetic::{superquadric_cloud, union_cloud};
+use glam::{DQuat, DVec3};
+use std::path::Path;
+
+fn pure() -> FitOptions {
+    FitOptions {
+        global_only: true,
+        ..FitOptions::default()
+    }
+    .for_data()
+}
+
+/// The mean distance of `points` to the nearest fitted part, over their diagonal.
+fn mean_error(points: &[DVec3], whole: &Whole) -> f64 {
+    let mut best = vec![f64::INFINITY; points.len()];
+    let mut x = Vec::new();
+    for f in &whole.fits {
+        f.state.node_positions(&f.tess, &mut x);
+        for (b, d) in best.iter_mut().zip(point_distances(&f.tess, &x, points)) {
+            *b = b.min(d);
+        }
+    }
+    best.iter().sum::<f64>() / points.len() as f64 / bounding_diagonal(points)
+}
+
+/// A rounded block and a pointed spindle 3 apart, 600 points each.
+fn two_apart(noise: f64) -> Vec<DVec3> {
+    let a = SuperquadricParams {
+        a: 1.0,
+        a1: 0.5,
+        a2: 0.5,
+        a3: 1.0,
+        e1: 0.5,
+        e2: 1.0,
+    };
+    let b = SuperquadricParams {
+        a: 0.6,
+        a1: 1.0,
+        a2: 0.7,
+        a3: 0.7,
+        e1: 1.0,
+        e2: 0.4,
+    };
+    let mut points = superquadric_cloud(&a, DVec3::ZERO, DQuat::IDENTITY, 600, noise, 1);
+    points.extend(superquadric_cloud(
+        &b,
+        DVec3::new(3.0, 0.0, 0.0),
+        DQuat::IDENTITY,
+        600,
+        noise,
+        2,
+    ));
+    points
+}
+
+#[test]
+fn two_separate_superquadrics_become_two_parts_each_on_its_own() {
+    let points = two_apart(0.005);
+    let whole = fit_parts(&points, PartCount::Auto(DEFAULT_MAX_PARTS), &pure()).expect("fit");
+    assert_eq!(whole.fits.len(), 2);
+    let (a, b) = (whole.owner[0], whole.owner[600]);
+    assert_ne!(a, b);
+    assert!(whole.owner[..600].iter().all(|&o| o == a));
+    assert!(whole.owner[600..].iter().all(|&o| o == b));
+    let e = mean_error(&points, &whole);
+    assert!(e < 0.002, "mean distance {e} of the diagonal");
+    // Apart: no joint.
+    assert!(whole.joints.is_empty(), "{:?}", whole.joints);
+}
+
+#[test]
+fn one_noisy_superquadric_stays_one_part() {
+    // A part that would only cover noise does not pay for its parameters.
+    let q = SuperquadricParams {
+        a: 1.0,
+        a1: 1.0,
+        a2: 0.6,
+        a3: 0.8,
+        e1: 0.7,
+        e2: 1.2,
+    };
+    for noise in [0.0, 0.01, 0.03] {
+        let points = superquadric_cloud(&q, DVec3::ONE, DQuat::IDENTITY, 2000, noise, 5);
+        let whole = fit_parts(&points, PartCount::Auto(DEFAULT_MAX_PARTS), &pure()).expect("fit");
+        assert_eq!(whole.fits.len(), 1, "noise {noise}");
+    }
+}
+
+#[test]
+fn a_body_and_a_limb_are_two_parts_joined_where_they_meet() {
+    // Generated truth: union_cloud seed 200 (a body and one limb, whole surface).
+    let cloud = union_cloud(200, 2, 3000, 0.0, false);
+    let whole = fit_parts(&cloud.points, PartCount::Auto(DEFAULT_MAX_PARTS), &pure()).expect("fit");
+    assert_eq!(whole.fits.len(), 2);
+    let e = mean_error(&cloud.points, &whole);
+    assert!(e < 0.002, "mean distance {e} of the diagonal");
+    assert_eq!(whole.joints.len(), 1);
+    let joint = whole.joints[0];
+    assert_eq!(joint.parts, [0, 1]);
+    // The joint lies where the limb enters the body: inside both true parts' reach.
+    let limb = &cloud.parts[1];
+    let reach = limb.shape.semi_axes().max_element() * 1.5;
+    assert!(joint.at.distance(limb.translation) < reach, "{joint:?}");
+}
+
+#[test]
+fn an_exact_count_is_met_and_the_same_input_gives_the_same_parts() {
+    let points = two_apart(0.0);
+    let three = fit_parts(&points, PartCount::Exact(3), &pure()).expect("fit");
+    assert_eq!(three.fits.len(), 3);
+    let again = fit_parts(&points, PartCount::Exact(3), &pure()).expect("fit");
+    assert_eq!(three.owner, again.owner);
+    for (a, b) in three.fits.iter().zip(&again.fits) {
+        assert_eq!(a.state.translation, b.state.translation);
+        assert_eq!(a.state.shape, b.state.shape);
+    }
+    let e = fit_parts(&points[..25], PartCount::Exact(3), &pure()).unwrap_err();
+    assert!(e.to_string().contains("parts = 3 is out of range"), "{e}");
+}
+
+#[test]
+fn the_scene_of_a_whole_object_reads_back_with_its_parts_and_joints() {
+    let cloud = union_cloud(200, 2, 1500, 0.0, false);
+    let opts = FitOptions::default().for_data();
+    let whole = fit_parts(&cloud.points, PartCount::Auto(4), &opts).expect("fit");
+    let scene = SceneDef::of_whole(
+        Path::new("/data/cloud.obj"),
+        Path::new("/data/scenes/x.dsq.ron"),
+        &whole,
+    );
+    let text = scene.to_ron().expect("ron");
+    let back = SceneDef::parse(&text, Path::new("x.dsq.ron")).expect("parse");
+    assert_eq!(back, scene);
+    assert_eq!(back.parts.len(), whole.fits.len());
+    assert_eq!(back.joints.len(), whole.joints.len());
+    assert!(text.contains("\"../cloud.obj\""), "{text}");
+    // Each part keeps its membrane.
+    for (part, fit) in back.parts.iter().zip(&whole.fits) {
+        assert_eq!(
+            part.local.as_ref().map(Vec::len),
+            Some(fit.state.displacement.len())
+        );
+    }
+}
