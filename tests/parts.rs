@@ -148,3 +148,65 @@ fn the_scene_of_a_whole_object_reads_back_with_its_parts_and_joints() {
         );
     }
 }
+
+/// The count and each part's surface recovered on generated unions (`synthetic::union_cloud`):
+/// a body with 1–5 limbs, 3000 points over the whole surface, and with 1–3 limbs seen from one
+/// side. Each true part's points lie within 0.2 % of the diagonal of the fitted parts, on
+/// average.
+#[test]
+fn generated_bodies_with_limbs_are_split_into_their_parts() {
+    let cases = [
+        (2, false),
+        (3, false),
+        (4, false),
+        (5, false),
+        (6, false),
+        (2, true),
+        (3, true),
+        (4, true),
+    ];
+    for (parts, view) in cases {
+        let cloud = union_cloud(100 * parts as u64, parts, 3000, 0.0, view);
+        let whole =
+            fit_parts(&cloud.points, PartCount::Auto(DEFAULT_MAX_PARTS), &pure()).expect("fit");
+        assert_eq!(whole.fits.len(), parts, "{parts} parts, one view: {view}");
+        for j in 0..parts {
+            let mine: Vec<DVec3> = cloud
+                .points
+                .iter()
+                .zip(&cloud.owner)
+                .filter(|(_, o)| **o == j)
+                .map(|(p, _)| *p)
+                .collect();
+            let e = mean_error(&mine, &whole) * bounding_diagonal(&mine)
+                / bounding_diagonal(&cloud.points);
+            assert!(e < 0.002, "{parts} parts, one view {view}: part {j} at {e}");
+        }
+    }
+}
+
+/// The generated unions the default is measured on (docs/results.md): `cargo test --release
+/// --no-default-features --test parts -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn sweep_generated_unions() {
+    for view in [false, true] {
+        for parts in 2..=6 {
+            for seed in 0..3u64 {
+                let cloud = union_cloud(100 * parts as u64 + seed, parts, 3000, 0.0, view);
+                let t = std::time::Instant::now();
+                let whole = fit_parts(&cloud.points, PartCount::Auto(DEFAULT_MAX_PARTS), &pure())
+                    .expect("fit");
+                let counts: Vec<usize> = (0..parts)
+                    .map(|j| cloud.owner.iter().filter(|&&o| o == j).count())
+                    .collect();
+                println!(
+                    "one view {view}, {parts} parts {counts:?}, seed {seed}: found {}, mean distance {:.4} of the diagonal, {:.2} s",
+                    whole.fits.len(),
+                    mean_error(&cloud.points, &whole),
+                    t.elapsed().as_secs_f64()
+                );
+            }
+        }
+    }
+}

@@ -24,7 +24,7 @@ mod spectral;
 mod split;
 
 pub use joints::{PartJoint, joints};
-pub use split::{DEFAULT_MAX_PARTS, PART_PARAMETERS, PartCount, Scale, TOLERANCE, split};
+pub use split::{DEFAULT_MAX_PARTS, PART_PARAMETERS, Scale, TOLERANCE, split};
 
 /// k-means clusters of `points`: the cluster of each point. Seeds: the point farthest from the
 /// centroid, then repeatedly the point farthest from every seed so far; then `iterations` Lloyd
@@ -101,6 +101,15 @@ pub struct Partition {
     pub stable: bool,
     /// How many points the last round moved to another part.
     pub moved: usize,
+}
+
+/// How many parts [`fit_parts`] makes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PartCount {
+    /// As many as lower the description length ([`split`]), at most this many.
+    Auto(usize),
+    /// Exactly this many ([`partition`] from k-means clusters).
+    Exact(usize),
 }
 
 /// A whole object fitted as parts ([`split`], [`fit_parts`]).
@@ -231,7 +240,7 @@ pub fn partition(
 /// from k-means clusters, [`PARTITION_ROUNDS`] rounds at most. Errors as theirs.
 pub fn fit_parts(points: &[DVec3], count: PartCount, opts: &FitOptions) -> Result<Whole, FitError> {
     let mut whole = match count {
-        PartCount::Auto(_) => split(points, count, opts)?,
+        PartCount::Auto(cap) => split(points, cap, opts)?,
         PartCount::Exact(k) => {
             validate_points(points)?;
             check_parts(points.len(), k)?;

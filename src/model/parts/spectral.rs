@@ -20,16 +20,15 @@ pub const NEIGHBOURS: usize = 10;
 /// Lanczos steps, at most.
 const LANCZOS_STEPS: usize = 160;
 
-/// The two sides of the least normalised cut of `points`' neighbourhood graph (`true`: the
-/// second side), or `None` for fewer than three points.
-pub fn bisect(points: &[DVec3]) -> Option<Vec<bool>> {
+/// The two sides of the least normalised cut of the neighbourhood graph `graph` of `points`
+/// ([`neighbourhood_graph`]; `true`: the second side), or `None` for fewer than three points.
+pub fn bisect_graph(points: &[DVec3], graph: &[Vec<usize>]) -> Option<Vec<bool>> {
     let n = points.len();
     if n < 3 {
         return None;
     }
-    let graph = neighbourhood_graph(points)?;
     let degree: Vec<f64> = graph.iter().map(|a| a.len() as f64).collect();
-    let fiedler = fiedler_vector(points, &graph, &degree);
+    let fiedler = fiedler_vector(points, graph, &degree);
     // The partition vector is D^{-1/2} f; sweep its order for the least normalised cut.
     let value: Vec<f64> = fiedler
         .iter()
@@ -59,8 +58,41 @@ pub fn bisect(points: &[DVec3]) -> Option<Vec<bool>> {
     Some(out)
 }
 
+/// The largest connected set of the nodes of `graph` where `mask` holds (`true` on it), or
+/// `None` when no node is masked. Ties go to the set with the lowest node.
+pub fn largest_component(graph: &[Vec<usize>], mask: &[bool]) -> Option<Vec<bool>> {
+    let mut label = vec![usize::MAX; graph.len()];
+    let mut best: Option<(usize, usize)> = None;
+    let mut stack = Vec::new();
+    let mut count = 0;
+    for start in 0..graph.len() {
+        if !mask[start] || label[start] != usize::MAX {
+            continue;
+        }
+        let id = count;
+        count += 1;
+        let mut size = 0;
+        label[start] = id;
+        stack.push(start);
+        while let Some(v) = stack.pop() {
+            size += 1;
+            for &u in &graph[v] {
+                if mask[u] && label[u] == usize::MAX {
+                    label[u] = id;
+                    stack.push(u);
+                }
+            }
+        }
+        if best.is_none_or(|(_, s)| size > s) {
+            best = Some((id, size));
+        }
+    }
+    let (id, _) = best?;
+    Some(label.iter().map(|&l| l == id).collect())
+}
+
 /// Each point's neighbours (symmetrised k-nearest), without duplicates.
-fn neighbourhood_graph(points: &[DVec3]) -> Option<Vec<Vec<usize>>> {
+pub fn neighbourhood_graph(points: &[DVec3]) -> Option<Vec<Vec<usize>>> {
     let tree = kd_tree(points)?;
     let k = NonZeroUsize::new((NEIGHBOURS + 1).min(points.len()))?;
     let mut graph: Vec<Vec<usize>> = vec![Vec::new(); points.len()];
@@ -121,21 +153,10 @@ fn fiedler_vector(points: &[DVec3], graph: &[Vec<usize>], degree: &[f64]) -> Vec
         basis.push(std::mem::replace(&mut q, w.clone()));
     }
     let m = basis.len();
-    let mut t = vec![vec![0.0; m]; m];
-    for i in 0..m {
-        t[i][i] = alpha[i];
-        if i + 1 < m {
-            t[i][i + 1] = beta[i];
-            t[i + 1][i] = beta[i];
-        }
-    }
-    let (values, vectors) = jacobi_eigen(t);
-    let top = (0..m)
-        .max_by(|&a, &b| values[a].total_cmp(&values[b]))
-        .unwrap_or(0);
+    let (_, top) = top_eigenpair(&alpha[..m], &beta[..m.saturating_sub(1)]);
     let mut f = vec![0.0; n];
     for (k, b) in basis.iter().enumerate() {
-        let c = vectors[k][top];
+        let c = top[k];
         f.iter_mut().zip(b).for_each(|(x, y)| *x += c * y);
     }
     f
@@ -155,51 +176,79 @@ fn orthogonalise<'a>(q: &mut [f64], against: impl Iterator<Item = &'a Vec<f64>> 
     }
 }
 
-/// The eigenvalues and eigenvectors (columns: `vectors[i][k]` is component i of vector k) of the
-/// symmetric matrix `a`, by cyclic Jacobi rotations.
-fn jacobi_eigen(mut a: Vec<Vec<f64>>) -> (Vec<f64>, Vec<Vec<f64>>) {
-    let m = a.len();
-    let mut v = vec![vec![0.0; m]; m];
-    for (i, row) in v.iter_mut().enumerate() {
-        row[i] = 1.0;
+/// How many eigenvalues of the symmetric tridiagonal matrix (diagonal `alpha`, off-diagonal
+/// `beta`) lie below `x` (Sturm's count).
+fn count_below(alpha: &[f64], beta: &[f64], x: f64) -> usize {
+    let mut count = 0;
+    let mut d = 1.0;
+    for i in 0..alpha.len() {
+        let b2 = if i == 0 {
+            0.0
+        } else {
+            beta[i - 1] * beta[i - 1]
+        };
+        d = alpha[i] - x - b2 / d;
+        if d == 0.0 {
+            d = -1e-300;
+        }
+        if d < 0.0 {
+            count += 1;
+        }
     }
-    for _ in 0..50 {
-        let off: f64 = (0..m)
-            .flat_map(|i| (0..m).filter(move |&j| j != i).map(move |j| (i, j)))
-            .map(|(i, j)| a[i][j] * a[i][j])
-            .sum();
-        if off < 1e-22 {
+    count
+}
+
+/// The largest eigenvalue of the symmetric tridiagonal matrix (diagonal `alpha`, off-diagonal
+/// `beta`) and its unit eigenvector: the value by bisection on Sturm's count, the vector by
+/// inverse iteration.
+fn top_eigenpair(alpha: &[f64], beta: &[f64]) -> (f64, Vec<f64>) {
+    let m = alpha.len();
+    if m == 0 {
+        return (0.0, Vec::new());
+    }
+    let radius = |i: usize| {
+        (if i > 0 { beta[i - 1].abs() } else { 0.0 })
+            + (if i + 1 < m { beta[i].abs() } else { 0.0 })
+    };
+    let (mut lo, mut hi) = (0..m).fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), i| {
+        (lo.min(alpha[i] - radius(i)), hi.max(alpha[i] + radius(i)))
+    });
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if mid <= lo || mid >= hi {
             break;
         }
-        for p in 0..m {
-            for q in p + 1..m {
-                if a[p][q].abs() < 1e-300 {
-                    continue;
-                }
-                let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
-                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-                let t = if theta == 0.0 { 1.0 } else { t };
-                let c = 1.0 / (t * t + 1.0).sqrt();
-                let s = t * c;
-                for k in 0..m {
-                    let (akp, akq) = (a[k][p], a[k][q]);
-                    a[k][p] = c * akp - s * akq;
-                    a[k][q] = s * akp + c * akq;
-                }
-                for k in 0..m {
-                    let (apk, aqk) = (a[p][k], a[q][k]);
-                    a[p][k] = c * apk - s * aqk;
-                    a[q][k] = s * apk + c * aqk;
-                }
-                for row in v.iter_mut() {
-                    let (vp, vq) = (row[p], row[q]);
-                    row[p] = c * vp - s * vq;
-                    row[q] = s * vp + c * vq;
-                }
-            }
+        if count_below(alpha, beta, mid) == m {
+            hi = mid;
+        } else {
+            lo = mid;
         }
     }
-    ((0..m).map(|i| a[i][i]).collect(), v)
+    let lambda = hi + 1e-10 * (1.0 + hi.abs());
+    // Inverse iteration: (T − λ) y = x by the Thomas algorithm, three times.
+    let mut x = vec![1.0 / (m as f64).sqrt(); m];
+    for _ in 0..3 {
+        let mut c = vec![0.0; m];
+        let mut d = vec![0.0; m];
+        for i in 0..m {
+            let sub = if i > 0 { beta[i - 1] } else { 0.0 };
+            let mut denom = alpha[i] - lambda - sub * if i > 0 { c[i - 1] } else { 0.0 };
+            if denom.abs() < 1e-300 {
+                denom = -1e-300;
+            }
+            c[i] = if i + 1 < m { beta[i] / denom } else { 0.0 };
+            d[i] = (x[i] - sub * if i > 0 { d[i - 1] } else { 0.0 }) / denom;
+        }
+        for i in (0..m).rev() {
+            x[i] = d[i] - if i + 1 < m { c[i] * x[i + 1] } else { 0.0 };
+        }
+        let norm = dot(&x, &x).sqrt();
+        if !(norm > 0.0 && norm.is_finite()) {
+            break;
+        }
+        x.iter_mut().for_each(|v| *v /= norm);
+    }
+    (hi, x)
 }
 
 #[cfg(test)]
@@ -219,7 +268,8 @@ mod tests {
         for i in 0..20 {
             points.push(DVec3::new(2.0 + i as f64 * 0.1, 1.0, 0.0));
         }
-        let side = bisect(&points).expect("bisect");
+        let graph = neighbourhood_graph(&points).expect("graph");
+        let side = bisect_graph(&points, &graph).expect("bisect");
         let left = points.iter().zip(&side).filter(|(p, _)| p.x < 1.95);
         let right = points.iter().zip(&side).filter(|(p, _)| p.x > 4.0);
         let l: Vec<bool> = left.map(|(_, s)| *s).collect();
@@ -230,24 +280,19 @@ mod tests {
     }
 
     #[test]
-    fn jacobi_diagonalises_a_symmetric_matrix() {
-        let a = vec![
-            vec![2.0, 1.0, 0.0],
-            vec![1.0, 2.0, 1.0],
-            vec![0.0, 1.0, 2.0],
-        ];
-        let (values, vectors) = jacobi_eigen(a.clone());
-        for k in 0..3 {
-            for i in 0..3 {
-                let av: f64 = (0..3).map(|j| a[i][j] * vectors[j][k]).sum();
-                assert!((av - values[k] * vectors[i][k]).abs() < 1e-10);
-            }
+    fn the_top_eigenpair_of_a_tridiagonal_matrix_is_found() {
+        // diag 2, off-diagonal 1, size 5: eigenvalues 2 + 2 cos(kπ/6), the top 2 + √3, its
+        // vector sin(iπ/6) (i = 1..5), normalised.
+        let (value, vector) = top_eigenpair(&[2.0; 5], &[1.0; 4]);
+        assert!((value - (2.0 + 3f64.sqrt())).abs() < 1e-9, "{value}");
+        let truth: Vec<f64> = (1..=5)
+            .map(|i| (i as f64 * std::f64::consts::PI / 6.0).sin())
+            .collect();
+        let norm = dot(&truth, &truth).sqrt();
+        let sign = vector[0].signum();
+        for (v, t) in vector.iter().zip(&truth) {
+            assert!((sign * v - t / norm).abs() < 1e-8, "{vector:?}");
         }
-        let mut sorted = values.clone();
-        sorted.sort_by(f64::total_cmp);
-        let r2 = 2f64.sqrt();
-        for (s, e) in sorted.iter().zip([2.0 - r2, 2.0, 2.0 + r2]) {
-            assert!((s - e).abs() < 1e-10, "{sorted:?}");
-        }
+        assert_eq!(count_below(&[2.0; 5], &[1.0; 4], 2.5), 3);
     }
 }

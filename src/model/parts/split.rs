@@ -2,22 +2,28 @@
 //! explain its points (beyond the paper, which places its parts by hand).
 //!
 //! **The cost.** A set of parts describes the points at a cost in nats,
-//! L = Σ_i ρ(d_i) + m · ½ P ln N: each point at distance d_i from the nearest part's surface
-//! costs ρ(d) = min(½ (d/τ)², C), its normal offset coded as a Gaussian of width τ or, when that
+//! L = Σ_i ρ(d_i) + ρ_s Σ_n A_n ρ(g_n) + m · ½ P ln N. Each point at distance d_i from the union of
+//! the parts (from the nearest surface, or, inside another part, at least its depth there)
+//! costs ρ(d) = min(½ (d/τ)², C): its normal offset coded as a Gaussian of width τ or, when that
 //! is dearer, as an outlier anywhere along the cloud's diagonal D (C = ln(D/τ), the code length
-//! of a position to within τ out of D); each of the m parts costs the BIC's ½ ln N for each of
-//! its P = 11 parameters. τ is the finest offset the data can show: the larger of the points'
+//! of a position to within τ out of D). Each node n of a part's surface outside the other parts,
+//! standing for area A_n, costs as the ρ_s A_n points the data would have there (ρ_s: the
+//! points per unit area of the one-part fit) at its gap g_n from the nearest point: a part
+//! that bulges where there is no data pays for it. Each of the m parts costs the BIC's ½ ln N
+//! for each of its P = 11 parameters. τ is the finest offset the data can show: the larger of the points'
 //! spacing (the median distance from a point to its nearest neighbour) and their noise
 //! ([`estimate_noise`]), floored at [`TOLERANCE`] of D, the finest a pure superquadric is asked
 //! to follow (finer detail is the membrane's).
 //!
-//! **The search.** Start from one part fitted to every point. Each part's best split is two
-//! parts fitted to the two k-means clusters of its points, then its points given to the nearer
-//! of the two surfaces and both refitted. The split that lowers L the most is taken, and again,
-//! until no split lowers L (or the cap is met; with an exact count, until the count is met).
-//! Then a part whose removal costs its points less than its own ½ P ln N is removed (none hides
-//! inside the others or exists only to cover noise), and every point goes to the part whose
-//! surface is nearest.
+//! **The search.** Start from one part fitted to every point. Each part is offered two cuts of
+//! its points: the spectral bisection of their neighbourhood graph (the least normalised cut,
+//! across a narrow neck: [`super::spectral`]), and the largest connected set of the points it
+//! leaves unexplained (farther than where a point costs as an outlier: a limb a robust fit
+//! passes by) against the rest. Each side is fitted from its moments; the better cut of each
+//! part is settled (its points given to the nearer of the two surfaces, both refitted). The
+//! split that lowers L the most is taken, and again, until no split lowers L or the cap is met.
+//! Then a part whose removal lowers L is removed (none hides inside the others or exists only
+//! to cover noise), and every point goes to the part whose surface is nearest.
 
 use super::{Whole, joints, nearest_surface};
 use crate::model::fit::{
@@ -40,27 +46,10 @@ pub const PART_PARAMETERS: f64 = 11.0;
 /// The finest offset a pure part is asked to follow, as a fraction of the cloud's diagonal.
 pub const TOLERANCE: f64 = 0.01;
 
-/// The cap on [`PartCount::Auto`] that `dsq fit --parts auto` and Python's `fit_parts` use
+/// The cap on [`super::PartCount::Auto`] that `dsq fit --parts auto` and Python's `fit_parts` use
 /// unless given one: a bound on the time, well above the parts an object's description length
 /// asks for.
 pub const DEFAULT_MAX_PARTS: usize = 12;
-
-/// How many parts [`split`] stops at, at most.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum PartCount {
-    /// As many as lower the description length, at most this many.
-    Auto(usize),
-    /// Exactly this many.
-    Exact(usize),
-}
-
-impl PartCount {
-    fn cap(self) -> usize {
-        match self {
-            Self::Auto(n) | Self::Exact(n) => n,
-        }
-    }
-}
 
 /// The scale the cost measures offsets in (module docs).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -125,6 +114,7 @@ fn median_spacing(points: &[DVec3]) -> f64 {
 
 /// One part while the object is split: its fit, the indices of its points, and what the cost
 /// needs of its surface.
+#[derive(Clone)]
 struct Part {
     fit: FitReport,
     members: Vec<usize>,
@@ -261,61 +251,149 @@ fn pure(opts: &FitOptions, init: Initialization) -> FitOptions {
     }
 }
 
-/// The best split of `p` (module docs), or `None` when a cluster is too small to fit.
-fn propose(
+/// The candidate cuts of a part's points (`true`: the second side): the spectral bisection of
+/// their neighbourhood graph, and the largest connected set of the points the part leaves
+/// unexplained (farther than the distance at which a point costs as an outlier) against the
+/// rest.
+fn cuts(own: &[DVec3], p: &Part, scale: &Scale) -> Vec<Vec<bool>> {
+    let Some(graph) = super::spectral::neighbourhood_graph(own) else {
+        return Vec::new();
+    };
+    let mut out: Vec<Vec<bool>> = super::spectral::bisect_graph(own, &graph)
+        .into_iter()
+        .collect();
+    let reach = scale.tau * (2.0 * scale.outlier).sqrt();
+    let unexplained: Vec<bool> = p.distances(own).iter().map(|&d| d > reach).collect();
+    if let Some(set) = super::spectral::largest_component(&graph, &unexplained) {
+        out.push(set);
+    }
+    out
+}
+
+/// The split of `p` along `side`: each side's pure superquadric fitted from its moments, or
+/// `None` when a side is too small to fit.
+fn try_cut(
     points: &[DVec3],
     data: &Data,
     p: &Part,
+    side: &[bool],
     opts: &FitOptions,
     scale: &Scale,
 ) -> Result<Option<Proposal>, FitError> {
-    let own = gather(points, &p.members);
-    let Some(side) = super::spectral::bisect(&own) else {
-        return Ok(None);
-    };
-    let label: Vec<usize> = side.iter().map(|&s| usize::from(s)).collect();
-    let halves = |label: &[usize]| -> [Vec<usize>; 2] {
-        let mut h = [Vec::new(), Vec::new()];
-        for (&i, &l) in p.members.iter().zip(label) {
-            h[l.min(1)].push(i);
-        }
-        h
-    };
-    let [a, b] = halves(&label);
+    let [a, b] = halves(&p.members, side);
     if a.len() < MIN_POINTS || b.len() < MIN_POINTS {
         return Ok(None);
     }
     let moments = pure(opts, Initialization::Moments);
-    let mut pair = [
+    let pair = [
         Part::new(points, data, a, &moments)?,
         Part::new(points, data, b, &moments)?,
     ];
-    // Each point to the nearer of the two surfaces, and both refitted from where they are.
-    let near = nearest_surface(&own, pair.iter().map(|q| (&q.fit.tess, &q.fit.state)));
-    let [a, b] = halves(&near);
-    if near != label && a.len() >= MIN_POINTS && b.len() >= MIN_POINTS {
-        let again = |q: &Part, members| {
-            let o = pure(opts, Initialization::Explicit(q.pose));
-            Part::new(points, data, members, &o)
-        };
-        pair = [again(&pair[0], a)?, again(&pair[1], b)?];
-    }
-    let before = cost(points, &p.members, &[p], data, scale);
-    let after = cost(points, &p.members, &[&pair[0], &pair[1]], data, scale);
+    Ok(Some(Proposal::new(points, data, p, pair, scale)))
+}
 
-    Ok(Some(Proposal {
-        parts: pair,
-        gain: before - after - scale.part,
-    }))
+/// `p`'s members split by `side` (`true`: the second).
+fn halves(members: &[usize], side: &[bool]) -> [Vec<usize>; 2] {
+    let mut h = [Vec::new(), Vec::new()];
+    for (&i, &l) in members.iter().zip(side) {
+        h[usize::from(l)].push(i);
+    }
+    h
+}
+
+/// `proposal` for `p` settled: each of `p`'s points given to the nearer of the two surfaces and
+/// both refitted from where they are (unchanged when no point moves).
+fn settle(
+    points: &[DVec3],
+    data: &Data,
+    p: &Part,
+    proposal: Proposal,
+    opts: &FitOptions,
+    scale: &Scale,
+) -> Result<Proposal, FitError> {
+    let own = gather(points, &p.members);
+    let pair = &proposal.parts;
+    let near: Vec<bool> = nearest_surface(&own, pair.iter().map(|q| (&q.fit.tess, &q.fit.state)))
+        .iter()
+        .map(|&j| j == 1)
+        .collect();
+    let [a, b] = halves(&p.members, &near);
+    if a == pair[0].members || a.len() < MIN_POINTS || b.len() < MIN_POINTS {
+        return Ok(proposal);
+    }
+    let again = |q: &Part, members| {
+        let o = pure(opts, Initialization::Explicit(q.pose));
+        Part::new(points, data, members, &o)
+    };
+    let settled = [again(&pair[0], a)?, again(&pair[1], b)?];
+    Ok(Proposal::new(points, data, p, settled, scale))
+}
+
+impl Proposal {
+    /// `p` split into `pair`, with its gain.
+    fn new(points: &[DVec3], data: &Data, p: &Part, pair: [Part; 2], scale: &Scale) -> Self {
+        let before = cost(points, &p.members, &[p], data, scale);
+        let after = cost(points, &p.members, &[&pair[0], &pair[1]], data, scale);
+        Self {
+            parts: pair,
+            gain: before - after - scale.part,
+        }
+    }
+}
+
+/// The best split of each of `parts` (by index `todo`) among its candidate cuts ([`cuts`]),
+/// settled ([`settle`]); `None` for a part no cut of which can be fitted. The cuts are fitted
+/// side by side, then the best of each part settled side by side.
+fn propose(
+    points: &[DVec3],
+    data: &Data,
+    parts: &[Part],
+    todo: &[usize],
+    opts: &FitOptions,
+    scale: &Scale,
+) -> Result<Vec<Option<Proposal>>, FitError> {
+    let mut jobs: Vec<(usize, Vec<bool>)> = Vec::new();
+    for &j in todo {
+        let own = gather(points, &parts[j].members);
+        jobs.extend(cuts(&own, &parts[j], scale).into_iter().map(|c| (j, c)));
+    }
+    let tried = run_parallel(
+        &jobs,
+        |(j, side), _| try_cut(points, data, &parts[*j], side, opts, scale),
+        &mut |_: &()| {},
+    );
+    let mut best: Vec<Option<Proposal>> = todo.iter().map(|_| None).collect();
+    for ((j, _), proposal) in jobs.iter().zip(tried) {
+        let slot = &mut best[todo.iter().position(|t| t == j).unwrap_or(0)];
+        if let Some(q) = proposal?
+            && slot.as_ref().is_none_or(|b| q.gain > b.gain)
+        {
+            *slot = Some(q);
+        }
+    }
+    let settle_jobs: Vec<(usize, Option<Proposal>)> = todo.iter().copied().zip(best).collect();
+    let settled = run_parallel(
+        &settle_jobs,
+        |(j, proposal), _| -> Result<Option<Proposal>, FitError> {
+            let Some(q) = proposal else { return Ok(None) };
+            let q = Proposal {
+                parts: [q.parts[0].clone(), q.parts[1].clone()],
+                gain: q.gain,
+            };
+            settle(points, data, &parts[*j], q, opts, scale).map(Some)
+        },
+        &mut |_: &()| {},
+    );
+    settled.into_iter().collect()
 }
 
 /// Splits `points` into parts by description length (module docs), each part a pure
 /// superquadric fitted with `opts` (made global-only), and joins the parts that touch
 /// ([`joints`], within τ). Errors: bad points or options, fewer
-/// than [`MIN_POINTS`] points, or an exact count the points cannot be split into.
-pub fn split(points: &[DVec3], count: PartCount, opts: &FitOptions) -> Result<Whole, FitError> {
+/// than [`MIN_POINTS`] points, or a `max_parts` of 0.
+pub fn split(points: &[DVec3], max_parts: usize, opts: &FitOptions) -> Result<Whole, FitError> {
     validate_points(points)?;
-    let cap = count.cap();
+    let cap = max_parts;
     super::check_parts(points.len(), cap)?;
     let scale = Scale::of(points);
     let mut data = Data {
@@ -334,13 +412,9 @@ pub fn split(points: &[DVec3], count: PartCount, opts: &FitOptions) -> Result<Wh
     let mut tried = vec![false];
     while parts.len() < cap {
         let todo: Vec<usize> = (0..parts.len()).filter(|&j| !tried[j]).collect();
-        let fresh = run_parallel(
-            &todo,
-            |&j, _| propose(points, &data, &parts[j], opts, &scale),
-            &mut |_: &()| {},
-        );
+        let fresh = propose(points, &data, &parts, &todo, opts, &scale)?;
         for (&j, proposal) in todo.iter().zip(fresh) {
-            proposals[j] = proposal?;
+            proposals[j] = proposal;
             tried[j] = true;
         }
         let best = proposals
@@ -349,7 +423,7 @@ pub fn split(points: &[DVec3], count: PartCount, opts: &FitOptions) -> Result<Wh
             .filter_map(|(j, p)| p.as_ref().map(|p| (j, p.gain)))
             .max_by(|a, b| a.1.total_cmp(&b.1));
         let Some((j, gain)) = best else { break };
-        if matches!(count, PartCount::Auto(_)) && gain <= 0.0 {
+        if gain <= 0.0 {
             break;
         }
         let Some(Proposal { parts: [a, b], .. }) = proposals[j].take() else {
@@ -361,17 +435,7 @@ pub fn split(points: &[DVec3], count: PartCount, opts: &FitOptions) -> Result<Wh
         tried.push(false);
         proposals.push(None);
     }
-    if let PartCount::Exact(n) = count
-        && parts.len() < n
-    {
-        return Err(FitError::BadOption(format!(
-            "parts = {n}: the points split into only {} parts of at least {MIN_POINTS} points",
-            parts.len()
-        )));
-    }
-    if matches!(count, PartCount::Auto(_)) {
-        prune(points, &mut parts, &data, &scale);
-    }
+    prune(points, &mut parts, &data, &scale);
     let fits: Vec<FitReport> = parts.into_iter().map(|p| p.fit).collect();
     let owner = nearest_surface(points, fits.iter().map(|f| (&f.tess, &f.state)));
     Ok(Whole {
