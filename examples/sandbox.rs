@@ -156,9 +156,17 @@ fn add_dropped(world: &mut World, file: &Path) {
     };
     let result = add_file(world, root, file, placement, &screenshot::assets_dir().0);
     let message = match result {
-        Ok(AddedFile::Part { name, points }) => {
+        Ok(AddedFile::Part {
+            name,
+            points,
+            parts,
+        }) => {
             world.resource_mut::<InspectorState>().select_name = Some(name.clone());
-            format!("added {name}: {points} points, placed from their moments and fitted")
+            if parts == 1 {
+                format!("added {name}: {points} points, placed from their moments and fitted")
+            } else {
+                format!("added {name}: {points} points split into {parts} jointed parts, fitted")
+            }
         }
         Ok(AddedFile::Image { name, size }) => {
             let mut sandbox = world.resource_mut::<Sandbox>();

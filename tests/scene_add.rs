@@ -83,7 +83,12 @@ fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
 
     let cow = shipped_data("cow_scan.obj");
     let added = add_file(app.world_mut(), root, &cow, PLACE, &dir).unwrap();
-    let AddedFile::Part { name, points } = added else {
+    let AddedFile::Part {
+        name,
+        points,
+        parts: 1,
+    } = added
+    else {
         panic!("a scan made {added:?}");
     };
     assert_eq!(name, "cow_scan");
@@ -302,5 +307,48 @@ fn a_part_placed_on_an_added_image_is_pulled_by_it() {
     }
     let moved = *app.world().get::<RigidState>(e).unwrap();
     assert!(moved.translation.is_finite() && moved != rigid);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_dropped_object_of_two_parts_becomes_two_jointed_parts_sharing_its_points() {
+    // Generated truth: a body and one limb (synthetic::union_cloud seed 200), written as an OBJ.
+    let (dir, mut app, _camera, root) = chain_app("whole");
+    let cloud = bevy_deformable_sq::synthetic::union_cloud(200, 2, 3000, 0.0, false);
+    let file = dir.join("body_and_limb.obj");
+    let text: String = cloud
+        .points
+        .iter()
+        .map(|p| format!("v {} {} {}\n", p.x, p.y, p.z))
+        .collect();
+    std::fs::write(&file, text).unwrap();
+    let added = add_file(app.world_mut(), root, &file, PLACE, &dir).unwrap();
+    assert_eq!(
+        added,
+        AddedFile::Part {
+            name: "body_and_limb 1".into(),
+            points: cloud.points.len(),
+            parts: 2,
+        }
+    );
+    for _ in 0..50 {
+        app.update();
+    }
+    assert_eq!(parts(&app, root).len(), 6, "the chain's four links and two");
+    assert_eq!(
+        joint_count(&mut app),
+        4,
+        "the chain's three and the new one"
+    );
+    let def = scene_def(&app, root);
+    for name in ["body_and_limb 1", "body_and_limb 2"] {
+        let part = def.parts.iter().find(|p| p.name == name).expect(name);
+        assert!(
+            matches!(&part.forces, Forces::Range { data, shared: true, .. } if data == "body_and_limb"),
+            "{:?}",
+            part.forces
+        );
+        assert!(matches!(part.placement, PartPlacement::Pose { .. }));
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -105,6 +105,12 @@ impl Default for Placement {
 }
 
 impl Placement {
+    /// The world position of the file point `p`: translation + rotation · (scale · p).
+    pub fn place(&self, p: DVec3) -> DVec3 {
+        let q = self.rotation.to_quat().unwrap_or(DQuat::IDENTITY);
+        DVec3::from_array(self.translation) + q * (self.scale * p)
+    }
+
     /// The placement that scales `points` (file coordinates) uniformly, without turning them, so
     /// that their centroid lands at `at` and their RMS distance from it is `radius`: their first
     /// two moments. `None` for no points, non-finite ones, or points that all coincide.

@@ -47,9 +47,7 @@ impl SceneData {
                     let bytes = read(path).map_err(|m| SceneError::at_field(file, &at, m))?;
                     let raw = decode_points(Path::new(path), &bytes)
                         .map_err(|e| SceneError::at_field(file, &at, e.to_string()))?;
-                    let q = placement.rotation.to_quat().unwrap_or(DQuat::IDENTITY);
-                    let t = DVec3::from_array(placement.translation);
-                    let placed = raw.iter().map(|p| t + q * (placement.scale * *p)).collect();
+                    let placed = raw.iter().map(|p| placement.place(*p)).collect();
                     out.points.insert(name.clone(), Arc::new(placed));
                 }
                 DataSource::Generated(g) => {

@@ -9,7 +9,8 @@
 //! of a position to within τ out of D). Each node n of a part's surface outside the other parts,
 //! standing for area A_n, costs as the ρ_s A_n points the data would have there (ρ_s: the
 //! points per unit area of the one-part fit) at its gap g_n from the nearest point: a part
-//! that bulges where there is no data pays for it. Each of the m parts costs the BIC's ½ ln N
+//! that bulges where there is no data pays for it. On a one-view scan ([`ONE_VIEW`]) only the
+//! surface facing the scanner had to show data, and only it pays. Each of the m parts costs the BIC's ½ ln N
 //! for each of its P = 11 parameters. τ is the finest offset the data can show: the larger of the points'
 //! spacing (the median distance from a point to its nearest neighbour) and their noise
 //! ([`estimate_noise`]), floored at [`TOLERANCE`] of D, the finest a pure superquadric is asked
@@ -112,6 +113,12 @@ fn median_spacing(points: &[DVec3]) -> f64 {
     *d.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
+/// Whether `p` lies inside the pure superquadric `pose`.
+fn inside_pose(pose: &InitialPose, p: DVec3) -> bool {
+    let local = pose.rotation.inverse() * (p - pose.translation);
+    inside_outside(&pose.shape, local) < 1.0
+}
+
 /// One part while the object is split: its fit, the indices of its points, and what the cost
 /// needs of its surface.
 #[derive(Clone)]
@@ -119,11 +126,15 @@ struct Part {
     fit: FitReport,
     members: Vec<usize>,
     pose: InitialPose,
-    /// Node positions, and the area each node stands for.
+    /// Node positions, the area each node stands for, and its outward normal.
     nodes: Vec<DVec3>,
     area: Vec<f64>,
+    normal: Vec<DVec3>,
     /// Each node's distance to the nearest data point.
     gap: Vec<f64>,
+    /// Every data point's distance to this part's surface, and whether it lies inside it.
+    dist: Vec<f64>,
+    inside: Vec<bool>,
 }
 
 impl Part {
@@ -138,33 +149,48 @@ impl Part {
         let mut nodes = Vec::new();
         fit.state.node_positions(&fit.tess, &mut nodes);
         let mut area = vec![0.0; nodes.len()];
+        let mut normal = vec![DVec3::ZERO; nodes.len()];
         for t in fit.tess.triangles() {
             let [a, b, c] = t.map(|i| nodes[i as usize]);
-            let third = (b - a).cross(c - a).length() / 6.0;
+            let cross = (b - a).cross(c - a);
+            let third = cross.length() / 6.0;
             for &i in t {
                 area[i as usize] += third;
+                normal[i as usize] += cross;
             }
         }
+        // Outward: the side away from the centre, over the whole surface.
+        let centre = fit.state.translation;
+        let outward: f64 = normal
+            .iter()
+            .zip(&nodes)
+            .map(|(n, x)| n.dot(*x - centre))
+            .sum();
+        let sign = if outward < 0.0 { -1.0 } else { 1.0 };
+        let normal = normal
+            .iter()
+            .map(|n| (*n * sign).normalize_or_zero())
+            .collect();
         let gap = data.gaps(&nodes);
+        let pose = InitialPose::of(&fit.state);
+        let dist = point_distances(&fit.tess, &nodes, points);
+        let inside = points.iter().map(|p| inside_pose(&pose, *p)).collect();
         Ok(Self {
-            pose: InitialPose::of(&fit.state),
+            pose,
             fit,
             members,
             nodes,
             area,
+            normal,
             gap,
+            dist,
+            inside,
         })
-    }
-
-    /// The distance of each of `points` to this part's surface.
-    fn distances(&self, points: &[DVec3]) -> Vec<f64> {
-        point_distances(&self.fit.tess, &self.nodes, points)
     }
 
     /// Whether `p` lies inside this part's pure superquadric.
     fn contains(&self, p: DVec3) -> bool {
-        let local = self.pose.rotation.inverse() * (p - self.pose.translation);
-        inside_outside(&self.pose.shape, local) < 1.0
+        inside_pose(&self.pose, p)
     }
 
     /// The total area of the surface.
@@ -178,6 +204,9 @@ struct Data {
     tree: Option<ImmutableKdTree<f64, 3>>,
     /// Points per unit of area.
     density: f64,
+    /// Where a one-view scan was seen from (unit), when the points are one ([`view_of`]): only
+    /// the surface facing it had to show data.
+    view: Option<DVec3>,
 }
 
 impl Data {
@@ -199,31 +228,32 @@ impl Data {
     }
 }
 
-/// The cost (nats) of describing the points `idx` by `parts` (module docs): each point at its
+/// The cost (nats) of describing every point by `parts` (module docs): each point at its
 /// distance from the union of the parts, each part's surface outside the others at its gap
-/// from the data, weighted by the data's density.
-fn cost(points: &[DVec3], idx: &[usize], parts: &[&Part], data: &Data, scale: &Scale) -> f64 {
-    let own = gather(points, idx);
-    let dist: Vec<Vec<f64>> = parts.iter().map(|p| p.distances(&own)).collect();
+/// from the data, weighted by the data's density; without the parts' own price.
+fn cost(parts: &[&Part], data: &Data, scale: &Scale) -> f64 {
+    let n = parts.first().map_or(0, |p| p.dist.len());
     let mut total = 0.0;
-    for (i, p) in own.iter().enumerate() {
+    for i in 0..n {
         let mut near = f64::INFINITY;
         let mut depth: f64 = 0.0;
-        for (j, q) in parts.iter().enumerate() {
-            let d = dist[j][i];
+        for q in parts {
+            let d = q.dist[i];
             near = near.min(d);
-            if parts.len() > 1 && q.contains(*p) {
+            if parts.len() > 1 && q.inside[i] {
                 depth = depth.max(d);
             }
         }
         total += scale.point_cost(near.max(depth));
     }
     for (j, q) in parts.iter().enumerate() {
-        for ((n, a), g) in q.nodes.iter().zip(&q.area).zip(&q.gap) {
-            let hidden = parts
-                .iter()
-                .enumerate()
-                .any(|(k, o)| k != j && o.contains(*n));
+        for (((n, a), g), normal) in q.nodes.iter().zip(&q.area).zip(&q.gap).zip(&q.normal) {
+            let unseen = data.view.is_some_and(|v| normal.dot(v) <= 0.0);
+            let hidden = unseen
+                || parts
+                    .iter()
+                    .enumerate()
+                    .any(|(k, o)| k != j && o.contains(*n));
             if !hidden {
                 total += data.density * a * scale.point_cost(*g);
             }
@@ -263,128 +293,127 @@ fn cuts(own: &[DVec3], p: &Part, scale: &Scale) -> Vec<Vec<bool>> {
         .into_iter()
         .collect();
     let reach = scale.tau * (2.0 * scale.outlier).sqrt();
-    let unexplained: Vec<bool> = p.distances(own).iter().map(|&d| d > reach).collect();
+    let unexplained: Vec<bool> = p.members.iter().map(|&i| p.dist[i] > reach).collect();
     if let Some(set) = super::spectral::largest_component(&graph, &unexplained) {
         out.push(set);
     }
     out
 }
 
-/// The split of `p` along `side`: each side's pure superquadric fitted from its moments, or
-/// `None` when a side is too small to fit.
-fn try_cut(
-    points: &[DVec3],
-    data: &Data,
-    p: &Part,
-    side: &[bool],
-    opts: &FitOptions,
-    scale: &Scale,
-) -> Result<Option<Proposal>, FitError> {
-    let [a, b] = halves(&p.members, side);
-    if a.len() < MIN_POINTS || b.len() < MIN_POINTS {
-        return Ok(None);
-    }
-    let moments = pure(opts, Initialization::Moments);
-    let pair = [
-        Part::new(points, data, a, &moments)?,
-        Part::new(points, data, b, &moments)?,
-    ];
-    Ok(Some(Proposal::new(points, data, p, pair, scale)))
+/// What a split's proposals are made and judged against: the points, the options, the scale,
+/// the parts so far and their whole cost.
+struct Round<'a> {
+    points: &'a [DVec3],
+    data: &'a Data,
+    opts: &'a FitOptions,
+    scale: &'a Scale,
+    parts: &'a [Part],
+    before: f64,
 }
 
-/// `p`'s members split by `side` (`true`: the second).
+impl Round<'_> {
+    /// A part fitted to the points `members` with the pure options and `init`.
+    fn part(&self, members: Vec<usize>, init: Initialization) -> Result<Part, FitError> {
+        Part::new(self.points, self.data, members, &pure(self.opts, init))
+    }
+
+    /// Part `j` split into `pair`, with its gain.
+    fn proposal(&self, j: usize, pair: [Part; 2]) -> Proposal {
+        let mut after: Vec<&Part> = self
+            .parts
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| *k != j)
+            .map(|(_, q)| q)
+            .collect();
+        after.extend(pair.iter());
+        let gain = self.before - cost(&after, self.data, self.scale) - self.scale.part;
+        Proposal { parts: pair, gain }
+    }
+
+    /// The split of part `j` along `side`: each side's pure superquadric fitted from its
+    /// moments, or `None` when a side is too small to fit.
+    fn try_cut(&self, j: usize, side: &[bool]) -> Result<Option<Proposal>, FitError> {
+        let [a, b] = halves(&self.parts[j].members, side);
+        if a.len() < MIN_POINTS || b.len() < MIN_POINTS {
+            return Ok(None);
+        }
+        let pair = [
+            self.part(a, Initialization::Moments)?,
+            self.part(b, Initialization::Moments)?,
+        ];
+        Ok(Some(self.proposal(j, pair)))
+    }
+
+    /// `proposal` for part `j` settled: each of its points given to the nearer of the two
+    /// surfaces and both refitted from where they are (unchanged when no point moves).
+    fn settle(&self, j: usize, proposal: Proposal) -> Result<Proposal, FitError> {
+        let p = &self.parts[j];
+        let pair = &proposal.parts;
+        let near: Vec<bool> = p
+            .members
+            .iter()
+            .map(|&i| pair[1].dist[i] < pair[0].dist[i])
+            .collect();
+        let [a, b] = halves(&p.members, &near);
+        if a == pair[0].members || a.len() < MIN_POINTS || b.len() < MIN_POINTS {
+            return Ok(proposal);
+        }
+        let settled = [
+            self.part(a, Initialization::Explicit(pair[0].pose))?,
+            self.part(b, Initialization::Explicit(pair[1].pose))?,
+        ];
+        Ok(self.proposal(j, settled))
+    }
+
+    /// The best split of each part of `todo` among its candidate cuts ([`cuts`]), settled;
+    /// `None` for a part no cut of which can be fitted. The cuts are fitted side by side, then
+    /// the best of each part settled side by side.
+    fn propose(&self, todo: &[usize]) -> Result<Vec<Option<Proposal>>, FitError> {
+        let mut jobs: Vec<(usize, Vec<bool>)> = Vec::new();
+        for &j in todo {
+            let p = &self.parts[j];
+            let own = gather(self.points, &p.members);
+            jobs.extend(cuts(&own, p, self.scale).into_iter().map(|c| (j, c)));
+        }
+        let tried = run_parallel(
+            &jobs,
+            |(j, side), _| self.try_cut(*j, side),
+            &mut |_: &()| {},
+        );
+        let mut best: Vec<Option<Proposal>> = todo.iter().map(|_| None).collect();
+        for ((j, _), proposal) in jobs.iter().zip(tried) {
+            let slot = &mut best[todo.iter().position(|t| t == j).unwrap_or(0)];
+            if let Some(q) = proposal?
+                && slot.as_ref().is_none_or(|b| q.gain > b.gain)
+            {
+                *slot = Some(q);
+            }
+        }
+        let settle_jobs: Vec<(usize, Option<Proposal>)> = todo.iter().copied().zip(best).collect();
+        let settled = run_parallel(
+            &settle_jobs,
+            |(j, proposal), _| -> Result<Option<Proposal>, FitError> {
+                let Some(q) = proposal else { return Ok(None) };
+                let q = Proposal {
+                    parts: q.parts.clone(),
+                    gain: q.gain,
+                };
+                self.settle(*j, q).map(Some)
+            },
+            &mut |_: &()| {},
+        );
+        settled.into_iter().collect()
+    }
+}
+
+/// `members` split by `side` (`true`: the second).
 fn halves(members: &[usize], side: &[bool]) -> [Vec<usize>; 2] {
     let mut h = [Vec::new(), Vec::new()];
     for (&i, &l) in members.iter().zip(side) {
         h[usize::from(l)].push(i);
     }
     h
-}
-
-/// `proposal` for `p` settled: each of `p`'s points given to the nearer of the two surfaces and
-/// both refitted from where they are (unchanged when no point moves).
-fn settle(
-    points: &[DVec3],
-    data: &Data,
-    p: &Part,
-    proposal: Proposal,
-    opts: &FitOptions,
-    scale: &Scale,
-) -> Result<Proposal, FitError> {
-    let own = gather(points, &p.members);
-    let pair = &proposal.parts;
-    let near: Vec<bool> = nearest_surface(&own, pair.iter().map(|q| (&q.fit.tess, &q.fit.state)))
-        .iter()
-        .map(|&j| j == 1)
-        .collect();
-    let [a, b] = halves(&p.members, &near);
-    if a == pair[0].members || a.len() < MIN_POINTS || b.len() < MIN_POINTS {
-        return Ok(proposal);
-    }
-    let again = |q: &Part, members| {
-        let o = pure(opts, Initialization::Explicit(q.pose));
-        Part::new(points, data, members, &o)
-    };
-    let settled = [again(&pair[0], a)?, again(&pair[1], b)?];
-    Ok(Proposal::new(points, data, p, settled, scale))
-}
-
-impl Proposal {
-    /// `p` split into `pair`, with its gain.
-    fn new(points: &[DVec3], data: &Data, p: &Part, pair: [Part; 2], scale: &Scale) -> Self {
-        let before = cost(points, &p.members, &[p], data, scale);
-        let after = cost(points, &p.members, &[&pair[0], &pair[1]], data, scale);
-        Self {
-            parts: pair,
-            gain: before - after - scale.part,
-        }
-    }
-}
-
-/// The best split of each of `parts` (by index `todo`) among its candidate cuts ([`cuts`]),
-/// settled ([`settle`]); `None` for a part no cut of which can be fitted. The cuts are fitted
-/// side by side, then the best of each part settled side by side.
-fn propose(
-    points: &[DVec3],
-    data: &Data,
-    parts: &[Part],
-    todo: &[usize],
-    opts: &FitOptions,
-    scale: &Scale,
-) -> Result<Vec<Option<Proposal>>, FitError> {
-    let mut jobs: Vec<(usize, Vec<bool>)> = Vec::new();
-    for &j in todo {
-        let own = gather(points, &parts[j].members);
-        jobs.extend(cuts(&own, &parts[j], scale).into_iter().map(|c| (j, c)));
-    }
-    let tried = run_parallel(
-        &jobs,
-        |(j, side), _| try_cut(points, data, &parts[*j], side, opts, scale),
-        &mut |_: &()| {},
-    );
-    let mut best: Vec<Option<Proposal>> = todo.iter().map(|_| None).collect();
-    for ((j, _), proposal) in jobs.iter().zip(tried) {
-        let slot = &mut best[todo.iter().position(|t| t == j).unwrap_or(0)];
-        if let Some(q) = proposal?
-            && slot.as_ref().is_none_or(|b| q.gain > b.gain)
-        {
-            *slot = Some(q);
-        }
-    }
-    let settle_jobs: Vec<(usize, Option<Proposal>)> = todo.iter().copied().zip(best).collect();
-    let settled = run_parallel(
-        &settle_jobs,
-        |(j, proposal), _| -> Result<Option<Proposal>, FitError> {
-            let Some(q) = proposal else { return Ok(None) };
-            let q = Proposal {
-                parts: [q.parts[0].clone(), q.parts[1].clone()],
-                gain: q.gain,
-            };
-            settle(points, data, &parts[*j], q, opts, scale).map(Some)
-        },
-        &mut |_: &()| {},
-    );
-    settled.into_iter().collect()
 }
 
 /// Splits `points` into parts by description length (module docs), each part a pure
@@ -399,6 +428,7 @@ pub fn split(points: &[DVec3], max_parts: usize, opts: &FitOptions) -> Result<Wh
     let mut data = Data {
         tree: kd_tree(points),
         density: 0.0,
+        view: None,
     };
     let all: Vec<usize> = (0..points.len()).collect();
     let mut parts = vec![Part::new(
@@ -408,14 +438,36 @@ pub fn split(points: &[DVec3], max_parts: usize, opts: &FitOptions) -> Result<Wh
         &pure(opts, Initialization::Moments),
     )?];
     data.density = points.len() as f64 / parts[0].total_area().max(f64::MIN_POSITIVE);
+    data.view = view_of(points, parts[0].fit.state.translation);
+    if data.view.is_some() {
+        // Only the seen half of a closed surface carries the points.
+        data.density *= 2.0;
+    }
     let mut proposals: Vec<Option<Proposal>> = vec![None];
     let mut tried = vec![false];
     while parts.len() < cap {
         let todo: Vec<usize> = (0..parts.len()).filter(|&j| !tried[j]).collect();
-        let fresh = propose(points, &data, &parts, &todo, opts, &scale)?;
+        let round = Round {
+            points,
+            data: &data,
+            opts,
+            scale: &scale,
+            parts: &parts,
+            before: cost(&parts.iter().collect::<Vec<_>>(), &data, &scale),
+        };
+        let fresh = round.propose(&todo)?;
         for (&j, proposal) in todo.iter().zip(fresh) {
             proposals[j] = proposal;
             tried[j] = true;
+        }
+        // The other parts' proposals were judged against the parts as they were: judge them
+        // again against the parts as they are (their fits stand).
+        for (j, slot) in proposals.iter_mut().enumerate() {
+            if !todo.contains(&j)
+                && let Some(q) = slot.take()
+            {
+                *slot = Some(round.proposal(j, q.parts));
+            }
         }
         let best = proposals
             .iter()
@@ -435,7 +487,7 @@ pub fn split(points: &[DVec3], max_parts: usize, opts: &FitOptions) -> Result<Wh
         tried.push(false);
         proposals.push(None);
     }
-    prune(points, &mut parts, &data, &scale);
+    prune(&mut parts, &data, &scale);
     let fits: Vec<FitReport> = parts.into_iter().map(|p| p.fit).collect();
     let owner = nearest_surface(points, fits.iter().map(|f| (&f.tess, &f.state)));
     Ok(Whole {
@@ -449,17 +501,16 @@ pub fn split(points: &[DVec3], max_parts: usize, opts: &FitOptions) -> Result<Wh
 /// Removes, one at a time, the part whose removal lowers the whole cost the most (its points
 /// then described by the others), while one does: a part hidden inside the others, or one that
 /// exists only to cover a few points, costs more than it saves.
-fn prune(points: &[DVec3], parts: &mut Vec<Part>, data: &Data, scale: &Scale) {
-    let all: Vec<usize> = (0..points.len()).collect();
+fn prune(parts: &mut Vec<Part>, data: &Data, scale: &Scale) {
     while parts.len() > 1 {
-        let whole = cost(points, &all, &parts.iter().collect::<Vec<_>>(), data, scale);
+        let whole = cost(&parts.iter().collect::<Vec<_>>(), data, scale);
         let without: Vec<f64> = (0..parts.len())
             .map(|j| {
                 let rest: Vec<&Part> = (0..parts.len())
                     .filter(|&k| k != j)
                     .map(|k| &parts[k])
                     .collect();
-                cost(points, &all, &rest, data, scale) - scale.part
+                cost(&rest, data, scale) - scale.part
             })
             .collect();
         let Some((j, c)) = without
@@ -474,5 +525,64 @@ fn prune(points: &[DVec3], parts: &mut Vec<Part>, data: &Data, scale: &Scale) {
             return;
         }
         parts.remove(j);
+    }
+}
+
+/// How far the points' mean outward normal must reach for them to be one view of a surface:
+/// over a closed surface the outward normals cancel (0, up to sampling), over the half a scanner
+/// sees they do not (1/2 for a sphere sampled uniformly by area, 2/3 by a scanner's pixel grid).
+pub const ONE_VIEW: f64 = 0.25;
+
+/// The direction a one-view scan was seen from, or `None` for points all round a surface: the
+/// mean of the points' normals (each the least principal axis of its neighbourhood) turned away
+/// from `centre`, when it reaches [`ONE_VIEW`].
+fn view_of(points: &[DVec3], centre: DVec3) -> Option<DVec3> {
+    let graph = super::spectral::neighbourhood_graph(points)?;
+    let mut sum = DVec3::ZERO;
+    for (i, near) in graph.iter().enumerate() {
+        if near.len() < 3 {
+            continue;
+        }
+        let mean = near.iter().map(|&j| points[j]).sum::<DVec3>() / near.len() as f64;
+        let mut m = glam::DMat3::ZERO;
+        for &j in near {
+            let d = points[j] - mean;
+            m += glam::DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        }
+        let (_, axes) = crate::model::linalg::symmetric_eigen3(&m);
+        let n = axes.col(0);
+        sum += if n.dot(points[i] - centre) < 0.0 {
+            -n
+        } else {
+            n
+        };
+    }
+    let mean = sum / points.len().max(1) as f64;
+    (mean.length() >= ONE_VIEW).then(|| mean.normalize())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::superquadric::SuperquadricParams;
+    use crate::synthetic::superquadric_cloud;
+    use glam::DQuat;
+
+    #[test]
+    fn a_one_view_scan_is_told_from_a_closed_surface_and_its_view_found() {
+        let q = SuperquadricParams {
+            a: 1.0,
+            a1: 1.0,
+            a2: 0.7,
+            a3: 0.5,
+            e1: 0.8,
+            e2: 1.0,
+        };
+        let all = superquadric_cloud(&q, DVec3::ZERO, DQuat::IDENTITY, 3000, 0.0, 9);
+        assert_eq!(view_of(&all, DVec3::ZERO), None);
+        let view = DVec3::new(0.3, -0.4, 0.866).normalize();
+        let seen: Vec<DVec3> = all.iter().copied().filter(|p| p.dot(view) > 0.0).collect();
+        let found = view_of(&seen, DVec3::ZERO).expect("a one-view scan");
+        assert!(found.dot(view) > 0.9, "{found}");
     }
 }

@@ -5,10 +5,12 @@
 
 use super::{DeformableScene, DeformableSceneRoot, scene_dir, scene_from_world};
 use crate::io::{decode_luminance, decode_points};
-use crate::model::fit::MIN_POINTS;
+use crate::model::fit::{FitOptions, MIN_POINTS};
 use crate::model::forces::image::DEFAULT_SIGMA;
+use crate::model::joint::Joint;
+use crate::model::parts::{DEFAULT_MAX_PARTS, PartCount, fit_parts};
 use crate::scene::{
-    CameraDef, DataSource, Forces, PartDef, PartPlacement, Placement, SceneData, SceneDef,
+    CameraDef, DataSource, Forces, JointDef, PartDef, PartPlacement, Placement, SceneData, SceneDef,
 };
 use bevy::math::DVec3;
 use bevy::prelude::*;
@@ -28,12 +30,17 @@ pub struct FilePlacement {
 /// What [`add_file`] added.
 #[derive(Clone, Debug, PartialEq)]
 pub enum AddedFile {
-    /// A part fitted to the file's points (a new scene part, placed `Auto`, with local DOFs).
+    /// Parts fitted to the file's points: the object split into parts
+    /// ([`crate::model::parts::fit_parts`]), one new scene part each (one part: placed `Auto`;
+    /// several: at their pure fits, sharing the points, joined where they touch), with local
+    /// DOFs.
     Part {
-        /// The part's (and its data source's) name.
+        /// The data source's name, and the part's (with several, the first part's).
         name: String,
         /// How many points the file has.
         points: usize,
+        /// How many parts the object was split into.
+        parts: usize,
     },
     /// An image source drawn as the backdrop in the world x–y plane; the scene's camera now faces
     /// it.
@@ -47,8 +54,8 @@ pub enum AddedFile {
 
 /// Adds the file at `file` to the scene of `root`:
 /// - an OBJ or PLY file becomes a point source, placed by [`Placement::framing`] at
-///   `placement.at` with RMS radius `placement.radius`, and a part on it with range forces,
-///   placed `Auto` (from the points' moments) and given local DOFs, which the scene's
+///   `placement.at` with RMS radius `placement.radius`, and the object's parts on it with range
+///   forces and local DOFs ([`AddedFile::Part`]), which the scene's
 ///   [`FitDriver`](crate::plugin::FitDriver) fits to convergence;
 /// - a PNG or JPEG file becomes an image source centred at `placement.at`'s x and y, its longer
 ///   side `placement.extent` long, with the scene's camera looking straight at it.
@@ -93,13 +100,13 @@ pub fn add_file(
                     placement: framing,
                 },
             );
-            let mut part = PartDef::new(name.clone());
-            part.placement = PartPlacement::Auto;
-            part.forces = Forces::range(name.clone());
-            def.parts.push(part);
+            let placed: Vec<DVec3> = raw.iter().map(|p| framing.place(*p)).collect();
+            let (first, parts) =
+                add_parts(&mut def, &name, &placed).map_err(|e| format!("{shown}: {e}"))?;
             AddedFile::Part {
-                name,
+                name: first,
                 points: raw.len(),
+                parts,
             }
         }
         Kind::Image => {
@@ -127,6 +134,45 @@ pub fn add_file(
     };
     replace_scene(world, root, def, &dir)?;
     Ok(added)
+}
+
+/// Adds the parts of the object `points` (world space, the scene's source `source`) to `def`:
+/// split by [`fit_parts`] into pure parts; one part placed `Auto`, or several placed at their
+/// fits, sharing the source, joined where they touch. Gives the first part's name and the count.
+fn add_parts(
+    def: &mut SceneDef,
+    source: &str,
+    points: &[DVec3],
+) -> Result<(String, usize), crate::model::fit::FitError> {
+    let opts = FitOptions {
+        global_only: true,
+        ..FitOptions::default()
+    }
+    .for_data();
+    let whole = fit_parts(points, PartCount::Auto(DEFAULT_MAX_PARTS), &opts)?;
+    if whole.fits.len() == 1 {
+        let mut part = PartDef::new(source);
+        part.placement = PartPlacement::Auto;
+        part.forces = Forces::range(source);
+        def.parts.push(part);
+        return Ok((source.to_string(), 1));
+    }
+    let base = def.parts.len();
+    for (j, f) in whole.fits.iter().enumerate() {
+        let mut part = PartDef::new(format!("{source} {}", j + 1));
+        part.forces = Forces::range(source);
+        if let Forces::Range { shared, .. } = &mut part.forces {
+            *shared = true;
+        }
+        def.parts.push(part);
+        def.set_state(base + j, &f.state, false);
+    }
+    def.joints.extend(whole.joints.iter().map(|j| JointDef {
+        parts: [base + j.parts[0], base + j.parts[1]],
+        ends: j.ends,
+        stiffness: Joint::DEFAULT_STIFFNESS,
+    }));
+    Ok((format!("{source} 1"), whole.fits.len()))
 }
 
 /// Adds `part` to the scene of `root` (its data sources must be the scene's already): a part
