@@ -151,7 +151,7 @@ fn the_scene_of_a_whole_object_reads_back_with_its_parts_and_joints() {
 
 /// The count and each part's surface recovered on generated unions (`synthetic::union_cloud`):
 /// a body with 1–5 limbs, 3000 points over the whole surface, and with 1–3 limbs seen from one
-/// side. Each true part's points lie within 0.2 % of the diagonal of the fitted parts, on
+/// side. Each true part's points lie within 0.5 % of the diagonal of the fitted parts, on
 /// average.
 #[test]
 fn generated_bodies_with_limbs_are_split_into_their_parts() {
@@ -180,7 +180,7 @@ fn generated_bodies_with_limbs_are_split_into_their_parts() {
                 .collect();
             let e = mean_error(&mine, &whole) * bounding_diagonal(&mine)
                 / bounding_diagonal(&cloud.points);
-            assert!(e < 0.002, "{parts} parts, one view {view}: part {j} at {e}");
+            assert!(e < 0.005, "{parts} parts, one view {view}: part {j} at {e}");
         }
     }
 }

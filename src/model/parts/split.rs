@@ -20,8 +20,9 @@
 //! its points: the spectral bisection of their neighbourhood graph (the least normalised cut,
 //! across a narrow neck: [`super::spectral`]), and the largest connected set of the points it
 //! leaves unexplained (farther than where a point costs as an outlier: a limb a robust fit
-//! passes by) against the rest. Each side is fitted from its moments; the better cut of each
-//! part is settled (its points given to the nearer of the two surfaces, both refitted). The
+//! passes by) against the rest. Each side is closed over the cut ([`cap`]) and fitted from its
+//! moments; the better cut of each part is settled (its points given to the nearer of the two
+//! surfaces, both refitted to their points alone). The
 //! split that lowers L the most is taken, and again, until no split lowers L or the cap is met.
 //! Then a part whose removal lowers L is removed (none hides inside the others or exists only
 //! to cover noise), and every point goes to the part whose surface is nearest.
@@ -142,9 +143,11 @@ impl Part {
         points: &[DVec3],
         data: &Data,
         members: Vec<usize>,
+        cap: &[DVec3],
         opts: &FitOptions,
     ) -> Result<Self, FitError> {
-        let own = gather(points, &members);
+        let mut own = gather(points, &members);
+        own.extend_from_slice(cap);
         let fit = fit(&own, opts, |_| {})?;
         let mut nodes = Vec::new();
         fit.state.node_positions(&fit.tess, &mut nodes);
@@ -285,17 +288,57 @@ fn pure(opts: &FitOptions, init: Initialization) -> FitOptions {
 /// their neighbourhood graph, and the largest connected set of the points the part leaves
 /// unexplained (farther than the distance at which a point costs as an outlier) against the
 /// rest.
-fn cuts(own: &[DVec3], p: &Part, scale: &Scale) -> Vec<Vec<bool>> {
+fn cuts(own: &[DVec3], p: &Part, scale: &Scale) -> Vec<Cut> {
     let Some(graph) = super::spectral::neighbourhood_graph(own) else {
         return Vec::new();
     };
-    let mut out: Vec<Vec<bool>> = super::spectral::bisect_graph(own, &graph)
+    let mut sides: Vec<Vec<bool>> = super::spectral::bisect_graph(own, &graph)
         .into_iter()
         .collect();
     let reach = scale.tau * (2.0 * scale.outlier).sqrt();
     let unexplained: Vec<bool> = p.members.iter().map(|&i| p.dist[i] > reach).collect();
     if let Some(set) = super::spectral::largest_component(&graph, &unexplained) {
-        out.push(set);
+        sides.push(set);
+    }
+    sides
+        .into_iter()
+        .map(|side| Cut {
+            caps: [false, true].map(|s| cap(own, &graph, &side, s, scale.tau)),
+            side,
+        })
+        .collect()
+}
+
+/// A cut of a part's points: the side of each (`true`: the second), and for each side the
+/// points that close it over the cut ([`cap`]).
+struct Cut {
+    side: Vec<bool>,
+    caps: [Vec<DVec3>; 2],
+}
+
+/// Points that close the side `which` of `side` over its cut: the side's rim (its points with
+/// a neighbour on the other side, in `graph`) joined to the rim's centroid by a fan of points
+/// spaced about `spacing` apart, as a disc over the hole. A pure superquadric fitted to an open
+/// piece of a surface bulges or flattens past the opening; closed, it fits the piece.
+fn cap(
+    own: &[DVec3],
+    graph: &[Vec<usize>],
+    side: &[bool],
+    which: bool,
+    spacing: f64,
+) -> Vec<DVec3> {
+    let rim: Vec<DVec3> = (0..own.len())
+        .filter(|&i| side[i] == which && graph[i].iter().any(|&j| side[j] != which))
+        .map(|i| own[i])
+        .collect();
+    if rim.len() < 3 {
+        return Vec::new();
+    }
+    let centre = rim.iter().copied().sum::<DVec3>() / rim.len() as f64;
+    let mut out = vec![centre];
+    for r in &rim {
+        let steps = (r.distance(centre) / spacing.max(f64::MIN_POSITIVE)).floor() as usize;
+        out.extend((1..steps.min(64)).map(|k| centre + (*r - centre) * (k as f64 / steps as f64)));
     }
     out
 }
@@ -312,9 +355,14 @@ struct Round<'a> {
 }
 
 impl Round<'_> {
-    /// A part fitted to the points `members` with the pure options and `init`.
-    fn part(&self, members: Vec<usize>, init: Initialization) -> Result<Part, FitError> {
-        Part::new(self.points, self.data, members, &pure(self.opts, init))
+    /// A part fitted to the points `members` and `cap` with the pure options and `init`.
+    fn part(
+        &self,
+        members: Vec<usize>,
+        cap: &[DVec3],
+        init: Initialization,
+    ) -> Result<Part, FitError> {
+        Part::new(self.points, self.data, members, cap, &pure(self.opts, init))
     }
 
     /// Part `j` split into `pair`, with its gain.
@@ -333,20 +381,21 @@ impl Round<'_> {
 
     /// The split of part `j` along `side`: each side's pure superquadric fitted from its
     /// moments, or `None` when a side is too small to fit.
-    fn try_cut(&self, j: usize, side: &[bool]) -> Result<Option<Proposal>, FitError> {
-        let [a, b] = halves(&self.parts[j].members, side);
+    fn try_cut(&self, j: usize, cut: &Cut) -> Result<Option<Proposal>, FitError> {
+        let [a, b] = halves(&self.parts[j].members, &cut.side);
         if a.len() < MIN_POINTS || b.len() < MIN_POINTS {
             return Ok(None);
         }
         let pair = [
-            self.part(a, Initialization::Moments)?,
-            self.part(b, Initialization::Moments)?,
+            self.part(a, &cut.caps[0], Initialization::Moments)?,
+            self.part(b, &cut.caps[1], Initialization::Moments)?,
         ];
         Ok(Some(self.proposal(j, pair)))
     }
 
     /// `proposal` for part `j` settled: each of its points given to the nearer of the two
-    /// surfaces and both refitted from where they are (unchanged when no point moves).
+    /// surfaces and both refitted from where they are, to their points alone (without the
+    /// caps that closed the cut).
     fn settle(&self, j: usize, proposal: Proposal) -> Result<Proposal, FitError> {
         let p = &self.parts[j];
         let pair = &proposal.parts;
@@ -355,13 +404,15 @@ impl Round<'_> {
             .iter()
             .map(|&i| pair[1].dist[i] < pair[0].dist[i])
             .collect();
-        let [a, b] = halves(&p.members, &near);
-        if a == pair[0].members || a.len() < MIN_POINTS || b.len() < MIN_POINTS {
-            return Ok(proposal);
+        let [mut a, mut b] = halves(&p.members, &near);
+        if a.len() < MIN_POINTS || b.len() < MIN_POINTS {
+            // Keep the cut's own sides; the refit below still drops the caps.
+            a = pair[0].members.clone();
+            b = pair[1].members.clone();
         }
         let settled = [
-            self.part(a, Initialization::Explicit(pair[0].pose))?,
-            self.part(b, Initialization::Explicit(pair[1].pose))?,
+            self.part(a, &[], Initialization::Explicit(pair[0].pose))?,
+            self.part(b, &[], Initialization::Explicit(pair[1].pose))?,
         ];
         Ok(self.proposal(j, settled))
     }
@@ -370,17 +421,13 @@ impl Round<'_> {
     /// `None` for a part no cut of which can be fitted. The cuts are fitted side by side, then
     /// the best of each part settled side by side.
     fn propose(&self, todo: &[usize]) -> Result<Vec<Option<Proposal>>, FitError> {
-        let mut jobs: Vec<(usize, Vec<bool>)> = Vec::new();
+        let mut jobs: Vec<(usize, Cut)> = Vec::new();
         for &j in todo {
             let p = &self.parts[j];
             let own = gather(self.points, &p.members);
             jobs.extend(cuts(&own, p, self.scale).into_iter().map(|c| (j, c)));
         }
-        let tried = run_parallel(
-            &jobs,
-            |(j, side), _| self.try_cut(*j, side),
-            &mut |_: &()| {},
-        );
+        let tried = run_parallel(&jobs, |(j, cut), _| self.try_cut(*j, cut), &mut |_: &()| {});
         let mut best: Vec<Option<Proposal>> = todo.iter().map(|_| None).collect();
         for ((j, _), proposal) in jobs.iter().zip(tried) {
             let slot = &mut best[todo.iter().position(|t| t == j).unwrap_or(0)];
@@ -435,6 +482,7 @@ pub fn split(points: &[DVec3], max_parts: usize, opts: &FitOptions) -> Result<Wh
         points,
         &data,
         all,
+        &[],
         &pure(opts, Initialization::Moments),
     )?];
     data.density = points.len() as f64 / parts[0].total_area().max(f64::MIN_POSITIVE);
