@@ -122,6 +122,11 @@ fn an_exact_count_is_met_and_the_same_input_gives_the_same_parts() {
     }
     let e = fit_parts(&points[..25], PartCount::Exact(3), &pure()).unwrap_err();
     assert!(e.to_string().contains("parts = 3 is out of range"), "{e}");
+    // A cap is an upper bound: a cloud too small for it is fitted, as one part here.
+    let few = fit_parts(&points[..25], PartCount::Auto(DEFAULT_MAX_PARTS), &pure()).expect("fit");
+    assert_eq!(few.fits.len(), 1);
+    let e = fit_parts(&points[..25], PartCount::Auto(0), &pure()).unwrap_err();
+    assert!(e.to_string().contains("parts = 0 is out of range"), "{e}");
 }
 
 #[test]

@@ -466,11 +466,13 @@ fn halves(members: &[usize], side: &[bool]) -> [Vec<usize>; 2] {
 /// Splits `points` into parts by description length (module docs), each part a pure
 /// superquadric fitted with `opts` (made global-only), and joins the parts that touch
 /// ([`joints`], within τ). Errors: bad points or options, fewer
-/// than [`MIN_POINTS`] points, or a `max_parts` of 0.
+/// than [`MIN_POINTS`] points, or a `max_parts` of 0. A cap above what the points allow
+/// ([`MIN_POINTS`] a part) is lowered to it.
 pub fn split(points: &[DVec3], max_parts: usize, opts: &FitOptions) -> Result<Whole, FitError> {
     validate_points(points)?;
-    let cap = max_parts;
-    super::check_parts(points.len(), cap)?;
+    // At least one part and the points for it; a larger cap is only a bound.
+    super::check_parts(points.len(), max_parts.min(1))?;
+    let cap = max_parts.min(points.len() / MIN_POINTS);
     let scale = Scale::of(points);
     let mut data = Data {
         tree: kd_tree(points),
