@@ -35,6 +35,13 @@ impl InitialPose {
             shape: state.shape,
         }
     }
+
+    /// Whether `p` (world) lies strictly inside the superquadric: its inside–outside function
+    /// ([`super::superquadric::inside_outside`]) below 1 in the model frame.
+    pub fn contains(&self, p: DVec3) -> bool {
+        let local = self.rotation.inverse() * (p - self.translation);
+        super::superquadric::inside_outside(&self.shape, local) < 1.0
+    }
 }
 
 /// The centroid and second central moments of a point set.

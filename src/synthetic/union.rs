@@ -3,7 +3,7 @@
 
 use super::{Rng, area_uniform, unit_vector};
 use crate::model::init::InitialPose;
-use crate::model::superquadric::{SuperquadricParams, inside_outside};
+use crate::model::superquadric::SuperquadricParams;
 use glam::{DQuat, DVec3};
 
 /// A union of superquadrics and points on its surface.
@@ -15,11 +15,6 @@ pub struct UnionCloud {
     pub points: Vec<DVec3>,
     /// The part each point was drawn from.
     pub owner: Vec<usize>,
-}
-
-fn inside(pose: &InitialPose, p: DVec3) -> bool {
-    let local = pose.rotation.inverse() * (p - pose.translation);
-    inside_outside(&pose.shape, local) < 1.0
 }
 
 /// A body (semi-axes in [0.8, 1.2] × [0.5, 0.8] × [0.4, 0.6]) with `parts − 1` limbs (at most
@@ -94,7 +89,7 @@ pub fn union_cloud(seed: u64, parts: usize, points: usize, noise: f64, view: boo
             if poses
                 .iter()
                 .enumerate()
-                .all(|(k, o)| k == j || !inside(o, x))
+                .all(|(k, o)| k == j || !o.contains(x))
             {
                 cloud.push((x, j));
             }

@@ -5,7 +5,6 @@
 use crate::model::fit::FitReport;
 use crate::model::init::InitialPose;
 use crate::model::joint::JointEnd;
-use crate::model::superquadric::inside_outside;
 use glam::DVec3;
 
 /// A joint between two parts of a [`super::Partition`]: the parts' indices and the material
@@ -18,12 +17,6 @@ pub struct PartJoint {
     pub ends: [JointEnd; 2],
     /// Where the parts touch (data frame): the middle of their contact.
     pub at: DVec3,
-}
-
-/// Whether `p` lies inside the pure superquadric `pose`.
-fn inside(pose: &InitialPose, p: DVec3) -> bool {
-    let local = pose.rotation.inverse() * (p - pose.translation);
-    inside_outside(&pose.shape, local) < 1.0
 }
 
 /// The joints of the parts `fits` that touch: two parts touch where a node of one lies inside
@@ -46,8 +39,8 @@ pub fn joints(fits: &[FitReport], reach: f64) -> Vec<PartJoint> {
             let (pb, xb) = &shapes[b];
             let contact: Vec<DVec3> = xa
                 .iter()
-                .filter(|&&x| inside(pb, x))
-                .chain(xb.iter().filter(|&&x| inside(pa, x)))
+                .filter(|&&x| pb.contains(x))
+                .chain(xb.iter().filter(|&&x| pa.contains(x)))
                 .copied()
                 .collect();
             let at = if contact.is_empty() {

@@ -36,7 +36,6 @@ use crate::model::forces::nearest::kd_tree;
 use crate::model::init::InitialPose;
 use crate::model::noise::estimate_noise;
 use crate::model::parallel::run_parallel;
-use crate::model::superquadric::inside_outside;
 use glam::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use std::num::NonZeroUsize;
@@ -114,12 +113,6 @@ fn median_spacing(points: &[DVec3]) -> f64 {
     *d.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
-/// Whether `p` lies inside the pure superquadric `pose`.
-fn inside_pose(pose: &InitialPose, p: DVec3) -> bool {
-    let local = pose.rotation.inverse() * (p - pose.translation);
-    inside_outside(&pose.shape, local) < 1.0
-}
-
 /// One part while the object is split: its fit, the indices of its points, and what the cost
 /// needs of its surface.
 #[derive(Clone)]
@@ -177,7 +170,7 @@ impl Part {
         let gap = data.gaps(&nodes);
         let pose = InitialPose::of(&fit.state);
         let dist = point_distances(&fit.tess, &nodes, points);
-        let inside = points.iter().map(|p| inside_pose(&pose, *p)).collect();
+        let inside = points.iter().map(|p| pose.contains(*p)).collect();
         Ok(Self {
             pose,
             fit,
@@ -193,7 +186,7 @@ impl Part {
 
     /// Whether `p` lies inside this part's pure superquadric.
     fn contains(&self, p: DVec3) -> bool {
-        inside_pose(&self.pose, p)
+        self.pose.contains(p)
     }
 
     /// The total area of the surface.
