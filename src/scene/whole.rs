@@ -7,9 +7,8 @@ use crate::model::parts::Whole;
 
 impl SceneDef {
     /// The scene, to be written at `scene_file`, of a whole object fitted as parts: the cloud
-    /// `points_file` (referred to relative to the scene's folder) as the source `"cloud"`, shared
-    /// by every part; each part at its fitted state (with its local displacements),
-    /// tessellation, stiffness and the fit's outlier prior; the parts' joints.
+    /// `points_file` (referred to relative to the scene's folder) as the source `"cloud"`, and
+    /// the parts on it ([`SceneDef::add_whole`]).
     pub fn of_whole(points_file: &Path, scene_file: &Path, whole: &Whole) -> Self {
         let dir = lexical_absolute(scene_file.parent().unwrap_or(Path::new("")));
         let path = relative_path(&lexical_absolute(points_file), &dir)
@@ -25,21 +24,24 @@ impl SceneDef {
         let mut scene = SceneDef {
             data,
             parts: Vec::new(),
-            joints: whole
-                .joints
-                .iter()
-                .map(|j| JointDef {
-                    parts: j.parts,
-                    ends: j.ends,
-                    stiffness: default_joint_stiffness(),
-                })
-                .collect(),
+            joints: Vec::new(),
             camera: None,
         };
+        scene.add_whole("cloud", whole);
+        scene
+    }
+
+    /// Appends the parts of `whole`, fitted to the scene's source `source`, which they share:
+    /// named "`source` 1", "`source` 2", …, each at its fitted state (with its local
+    /// displacements) with its fit's tessellation, stiffness, range forces' settings and
+    /// freedoms; and their joints. Gives the index of the first part.
+    pub fn add_whole(&mut self, source: &str, whole: &Whole) -> usize {
+        let base = self.parts.len();
         for (j, f) in whole.fits.iter().enumerate() {
             let o = &f.options;
-            let forces = Forces::Range {
-                data: "cloud".into(),
+            let mut part = PartDef::new(format!("{source} {}", j + 1));
+            part.forces = Forces::Range {
+                data: source.into(),
                 beta: o.beta,
                 coverage: o.coverage,
                 influence: o.influence,
@@ -47,15 +49,18 @@ impl SceneDef {
                 crop: None,
                 shared: true,
             };
-            let mut part = PartDef::new(format!("part {j}"));
-            part.forces = forces;
             part.k = f.tess.k;
             part.w0 = o.dynamics.w0;
             part.w1 = o.dynamics.w1;
             part.free.global_only = o.global_only;
-            scene.parts.push(part);
-            scene.set_state(j, &f.state, true);
+            self.parts.push(part);
+            self.set_state(base + j, &f.state, true);
         }
-        scene
+        self.joints.extend(whole.joints.iter().map(|j| JointDef {
+            parts: [base + j.parts[0], base + j.parts[1]],
+            ends: j.ends,
+            stiffness: default_joint_stiffness(),
+        }));
+        base
     }
 }

@@ -7,7 +7,6 @@ use super::{DeformableScene, DeformableSceneRoot, scene_dir, scene_from_world};
 use crate::io::{decode_luminance, decode_points};
 use crate::model::fit::{FitOptions, MIN_POINTS};
 use crate::model::forces::image::DEFAULT_SIGMA;
-use crate::model::joint::Joint;
 use crate::model::parts::{DEFAULT_MAX_PARTS, PartCount, fit_parts};
 use crate::scene::{
     CameraDef, DataSource, Forces, JointDef, PartDef, PartPlacement, Placement, SceneData, SceneDef,
@@ -138,7 +137,8 @@ pub fn add_file(
 
 /// Adds the parts of the object `points` (world space, the scene's source `source`) to `def`:
 /// split by [`fit_parts`] into pure parts; one part placed `Auto`, or several placed at their
-/// fits, sharing the source, joined where they touch. Gives the first part's name and the count.
+/// fits, sharing the source, joined where they touch ([`SceneDef::add_whole`]), with local
+/// DOFs. Gives the first part's name and the count.
 fn add_parts(
     def: &mut SceneDef,
     source: &str,
@@ -157,21 +157,11 @@ fn add_parts(
         def.parts.push(part);
         return Ok((source.to_string(), 1));
     }
-    let base = def.parts.len();
-    for (j, f) in whole.fits.iter().enumerate() {
-        let mut part = PartDef::new(format!("{source} {}", j + 1));
-        part.forces = Forces::range(source);
-        if let Forces::Range { shared, .. } = &mut part.forces {
-            *shared = true;
-        }
-        def.parts.push(part);
-        def.set_state(base + j, &f.state, false);
+    // The split's parts are pure superquadrics; here they get their membranes from the fit.
+    let first = def.add_whole(source, &whole);
+    for part in &mut def.parts[first..] {
+        part.free.global_only = false;
     }
-    def.joints.extend(whole.joints.iter().map(|j| JointDef {
-        parts: [base + j.parts[0], base + j.parts[1]],
-        ends: j.ends,
-        stiffness: Joint::DEFAULT_STIFFNESS,
-    }));
     Ok((format!("{source} 1"), whole.fits.len()))
 }
 
