@@ -357,13 +357,20 @@ pub fn write_obj(
     for line in comment.lines() {
         let _ = writeln!(s, "# {line}");
     }
+    push_mesh(&mut s, vertices, triangles, 1);
+    std::fs::write(path, s).map_err(|e| err(path, format!("cannot write: {e}")))
+}
+
+/// Appends `vertices` as `v` lines and `triangles` as `f` lines numbered from `first` (the OBJ
+/// index of the first of these vertices).
+fn push_mesh(s: &mut String, vertices: &[DVec3], triangles: &[[u32; 3]], first: u32) {
+    use std::fmt::Write as _;
     for v in vertices {
         let _ = writeln!(s, "v {} {} {}", v.x, v.y, v.z);
     }
     for t in triangles {
-        let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
+        let _ = writeln!(s, "f {} {} {}", t[0] + first, t[1] + first, t[2] + first);
     }
-    std::fs::write(path, s).map_err(|e| err(path, format!("cannot write: {e}")))
 }
 
 /// Writes a model's closed surface x_i (in world units) as a triangle OBJ.
@@ -397,12 +404,7 @@ pub fn write_models_obj(
         if models.len() > 1 {
             let _ = writeln!(s, "o part_{j}");
         }
-        for v in &x {
-            let _ = writeln!(s, "v {} {} {}", v.x, v.y, v.z);
-        }
-        for t in tess.triangles() {
-            let _ = writeln!(s, "f {} {} {}", t[0] + base, t[1] + base, t[2] + base);
-        }
+        push_mesh(&mut s, &x, tess.triangles(), base);
         base += x.len() as u32;
     }
     std::fs::write(path, s).map_err(|e| err(path, format!("cannot write: {e}")))
@@ -452,6 +454,48 @@ mod tests {
         assert!(
             e.to_string().contains("missing.png") && e.message.contains("cannot read"),
             "{e}"
+        );
+    }
+
+    #[test]
+    fn several_models_are_written_as_one_object_each_with_their_own_vertices() {
+        let tess = Tessellation::new(4);
+        let a = ModelState::new(
+            &tess,
+            DVec3::ZERO,
+            glam::DQuat::IDENTITY,
+            Default::default(),
+        );
+        let b = ModelState::new(
+            &tess,
+            DVec3::X * 3.0,
+            glam::DQuat::IDENTITY,
+            Default::default(),
+        );
+        let path = temp("two.obj", b"");
+        write_models_obj(&path, &[(&tess, &a), (&tess, &b)]).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let n = tess.node_count();
+        assert_eq!(text.lines().filter(|l| l.starts_with("o part_")).count(), 2);
+        assert_eq!(load_points(&path).unwrap().len(), 2 * n);
+        // The second object's faces index its own vertices, after the first's.
+        let faces: Vec<Vec<usize>> = text
+            .lines()
+            .filter(|l| l.starts_with("f "))
+            .map(|l| l[2..].split(' ').map(|i| i.parse().unwrap()).collect())
+            .collect();
+        let half = faces.len() / 2;
+        assert!(
+            faces[..half]
+                .iter()
+                .flatten()
+                .all(|&i| (1..=n).contains(&i))
+        );
+        assert!(
+            faces[half..]
+                .iter()
+                .flatten()
+                .all(|&i| (n + 1..=2 * n).contains(&i))
         );
     }
 

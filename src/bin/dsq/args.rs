@@ -315,7 +315,7 @@ pub struct Args {
     pub source: Source,
     /// The range fit's settings.
     pub options: FitOptions,
-    /// The image fit's settings (`auto_parts` is also `--parts` for clouds).
+    /// The image fit's settings.
     pub image: ImageArgs,
     /// `--out-mesh`.
     pub out_mesh: Option<PathBuf>,
