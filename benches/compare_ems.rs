@@ -97,15 +97,12 @@ fn main() -> ExitCode {
             _ => dir = PathBuf::from(a),
         }
     }
-    let results = match &ems_file {
-        Some(f) => match ems::read_results(f) {
-            Ok(r) => r,
-            Err(e) => {
-                eprintln!("{e}");
-                return ExitCode::from(2);
-            }
-        },
-        None => Vec::new(),
+    let results = match ems::read_results(ems_file.as_deref()) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::from(2);
+        }
     };
     let clouds = match clouds_from(benched.then_some(dir.as_path())) {
         Ok(c) => c,

@@ -83,13 +83,12 @@ fn main() -> ExitCode {
         eprintln!("{}: {e}", dir.display());
         return ExitCode::from(2);
     }
-    let ems_fits = match ems_file.as_deref().map(ems::read_results) {
-        Some(Ok(r)) => r,
-        Some(Err(e)) => {
+    let ems_fits = match ems::read_results(ems_file.as_deref()) {
+        Ok(r) => r,
+        Err(e) => {
             eprintln!("{e}");
             return ExitCode::from(2);
         }
-        None => Vec::new(),
     };
     println!(
         "| cloud | ε1, ε2 (truth) | ours, global only: axes / ε / translation / rotation | ours, `--robust`, dynamics | ours, `--robust`, solved (the default) | EMS |"

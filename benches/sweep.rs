@@ -70,15 +70,12 @@ fn main() -> ExitCode {
             }
         }
     }
-    let theirs = match &ems_file {
-        Some(path) => match ems::read_results(path) {
-            Ok(r) => r,
-            Err(e) => {
-                eprintln!("{e}");
-                return ExitCode::from(2);
-            }
-        },
-        None => Vec::new(),
+    let theirs = match ems::read_results(ems_file.as_deref()) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::from(2);
+        }
     };
     if let Some(dir) = &export
         && let Err(e) = std::fs::create_dir_all(dir)

@@ -46,8 +46,12 @@ impl EmsFit {
     }
 }
 
-/// Every line of the results file `path`; errors name the file and line.
-pub fn read_results(path: &Path) -> Result<Vec<EmsFit>, String> {
+/// Every line of the results file `path` (`--ems FILE`), none without one; errors name the
+/// file and line.
+pub fn read_results(path: Option<&Path>) -> Result<Vec<EmsFit>, String> {
+    let Some(path) = path else {
+        return Ok(Vec::new());
+    };
     let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
     text.lines()
         .enumerate()
