@@ -9,7 +9,7 @@ use crate::model::fit::{FitOptions, MIN_POINTS};
 use crate::model::forces::image::DEFAULT_SIGMA;
 use crate::model::parts::{DEFAULT_MAX_PARTS, PartCount, fit_parts};
 use crate::scene::{
-    CameraDef, DataSource, Forces, JointDef, PartDef, PartPlacement, Placement, SceneData, SceneDef,
+    CameraDef, DataSource, Forces, PartDef, PartPlacement, Placement, SceneData, SceneDef,
 };
 use bevy::math::DVec3;
 use bevy::prelude::*;
