@@ -157,6 +157,7 @@ def fit_image(
     parts: Sequence[Sequence[float]],
     *,
     global_only: bool = False,
+    solver: Literal["solved", "lm", "dynamics"] = "solved",
     sigma: float = 2.0,
     band: float = 0.2,
     region: float = 0.0,
@@ -172,4 +173,6 @@ def fit_image(
 ) -> list[ImagePart]:
     """Fits one part per entry of ``parts`` (eight pixel coordinates: both ends of the major
     axis, then of the minor) to an (H, W) grey or (H, W, 3) colour image, as
-    ``dsq fit --image`` does."""
+    ``dsq fit --image`` does: solved for each part's rest by default; ``band``, ``region``,
+    ``paper_band``, ``free_depth``, ``w0``, ``w1``, ``beta`` and ``max_steps`` set the paper's
+    dynamics and need ``solver="dynamics"``."""

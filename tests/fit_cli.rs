@@ -267,6 +267,12 @@ fn bad_images_and_image_options_exit_2_with_a_one_line_error() {
     assert_bad_input(&["--image", tiny.to_str().unwrap()], "tiny.png", "1×1");
     assert_bad_input(&["--image", horse, "--sigma", "0"], "--sigma", "finite");
     assert_bad_input(&["--image", horse, "--sigma", "-2"], "--sigma", "finite");
+    // The dynamics' options are refused by the solved fit (the default), naming the way out.
+    assert_bad_input(
+        &["--image", horse, "--region", "0.04"],
+        "region",
+        "solver dynamics",
+    );
     assert_bad_input(
         &["--image", horse, "--part", "900,10,950,10,925,0,925,20"],
         "--part 1",
@@ -290,8 +296,6 @@ fn fits_parts_to_an_image_and_writes_the_overlay() {
         horse,
         "--k",
         "12",
-        "--max-steps",
-        "300",
         "--out-overlay",
         overlay.to_str().unwrap(),
         "--out-mesh",

@@ -1,8 +1,10 @@
-//! The region force on a photo-like image: each part's own inside against its surroundings
-//! (`RegionModel`), never the image's one threshold, and a part that grows without bound is
-//! stopped and says so. On a generated desk scene whose truth is known.
+//! Image fits on a photo-like image: each part's figure is its own (what encloses what), never
+//! the image's one threshold. The solved fit (the default) keeps a part within its reach; the
+//! paper's dynamics with a region force stop a part that grows without bound, and say so. On a
+//! generated desk scene whose truth is known.
 
 use bevy_deformable_sq::model::fem::Tessellation;
+use bevy_deformable_sq::model::fit::Solver;
 use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::image_fit::{
     ImageFitOptions, MAX_GROWTH, PartAxes, fit_image, iou, silhouette_mask,
@@ -106,7 +108,6 @@ fn parts_on_a_white_desk_settle_on_their_objects_not_on_the_desk() {
         .collect();
     let opts = ImageFitOptions {
         local: false,
-        region: 0.04,
         ..ImageFitOptions::default()
     };
     let fits = fit_image(p.clone(), &placed, &opts).unwrap();
@@ -149,9 +150,10 @@ fn a_part_placed_on_the_desk_itself_is_stopped_and_says_why() {
     let opts = ImageFitOptions {
         local: false,
         region: 0.04,
+        solver: Solver::Dynamics,
         ..ImageFitOptions::default()
     };
-    let fit = &fit_image(p, &[axes], &opts).unwrap()[0];
+    let fit = &fit_image(p.clone(), &[axes], &opts).unwrap()[0];
     assert!(fit.state.is_finite());
     assert!(!fit.converged);
     let why = fit.stopped.as_deref().expect("stopped");
@@ -160,6 +162,24 @@ fn a_part_placed_on_the_desk_itself_is_stopped_and_says_why() {
         "{why}"
     );
     assert!(fit.steps < opts.max_steps, "{} steps", fit.steps);
+    // Solved, the same part comes to rest within its reach: at most MAX_GROWTH times its
+    // placed area.
+    let solved = &fit_image(p.clone(), &[axes], &ImageFitOptions::default()).unwrap()[0];
+    let tess = Tessellation::new(ImageFitOptions::default().k);
+    let area = |state: &bevy_deformable_sq::model::dynamics::ModelState| {
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        silhouette_mask(&p, &[(&tess, &x)])
+            .iter()
+            .filter(|&&b| b)
+            .count() as f64
+    };
+    assert!(solved.state.is_finite() && solved.converged && solved.stopped.is_none());
+    let (before, after) = (area(&axes.state(&tess)), area(&solved.state));
+    assert!(
+        after <= 1.05 * MAX_GROWTH * before,
+        "{before} px → {after} px"
+    );
 }
 
 /// A dark box (a rectangle, half-sizes 30 × 14 px) on the desk below the tube and the can.
@@ -200,7 +220,6 @@ fn a_box_is_fitted_as_a_box_unless_its_squareness_is_held() {
     let fit = |fix_epsilon: bool| {
         let opts = ImageFitOptions {
             local: false,
-            region: 0.04,
             fix_epsilon,
             ..ImageFitOptions::default()
         };

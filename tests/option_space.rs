@@ -146,11 +146,15 @@ fn every_image_option_fits_finitely_or_is_refused_in_one_line() {
         for value in values.iter().chain(&EVERYWHERE) {
             let given = format!("{flag}={value}");
             let mut args = vec!["--image", image, "--quiet", &given];
-            if flag != "--max-steps" {
-                args.extend(["--max-steps", "20"]);
-            }
             if flag != "--part" && flag != "--parts" {
                 args.extend(["--part", "25,53,65,53,45,33,45,73"]);
+            }
+            // As given (the solved fit refuses the dynamics' options in one line naming them),
+            // then with the paper's dynamics, capped.
+            check(&args, flag);
+            args.extend(["--solver", "dynamics"]);
+            if flag != "--max-steps" {
+                args.extend(["--max-steps", "20"]);
             }
             check(&args, flag);
         }

@@ -34,8 +34,9 @@ pub const FIT_KEYWORDS: [&str; 19] = [
 ];
 
 /// The keywords of `fit_image`.
-pub const IMAGE_KEYWORDS: [&str; 13] = [
+pub const IMAGE_KEYWORDS: [&str; 14] = [
     "global_only",
+    "solver",
     "sigma",
     "band",
     "region",
@@ -99,6 +100,18 @@ fn tessellation(key: &str, v: &Bound<'_, PyAny>) -> PyResult<usize> {
     }
 }
 
+/// The `solver` keyword's value.
+fn solver(key: &str, v: &Bound<'_, PyAny>) -> PyResult<Solver> {
+    let s: String = value(key, v, "\"solved\" or \"dynamics\"")?;
+    match s.as_str() {
+        "solved" | "lm" => Ok(Solver::Solved),
+        "dynamics" => Ok(Solver::Dynamics),
+        _ => Err(value_error(format!(
+            "solver: {s:?} is not a solver; give \"solved\" or \"dynamics\""
+        ))),
+    }
+}
+
 /// `fit`'s keywords resolved as `dsq fit` resolves its flags for a POINTS file.
 pub fn cloud_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<FitOptions> {
     let mut c = CloudOptions::default();
@@ -116,18 +129,7 @@ pub fn cloud_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<FitOptions
             "migrate" => c.migrate = flag(&v)?,
             "taper" => c.taper = flag(&v)?,
             "bend" => c.bend = flag(&v)?,
-            "solver" => {
-                let s: String = value(&key, &v, "\"solved\" or \"dynamics\"")?;
-                c.solver = Some(match s.as_str() {
-                    "solved" | "lm" => Solver::Solved,
-                    "dynamics" => Solver::Dynamics,
-                    _ => {
-                        return Err(value_error(format!(
-                            "solver: {s:?} is not a solver; give \"solved\" or \"dynamics\""
-                        )));
-                    }
-                });
-            }
+            "solver" => c.solver = Some(solver(&key, &v)?),
             "outliers" => c.outliers = Some(number(&v)?),
             "nodes" | "k" => c.k = Some(tessellation(&key, &v)?),
             "w0" => c.w0 = Some(number(&v)?),
@@ -198,6 +200,7 @@ pub fn image_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<(ImageFitO
             "w1" => c.w1 = Some(number(&v)?),
             "beta" => c.beta = Some(number(&v)?),
             "max_steps" => c.max_steps = Some(value(&key, &v, "a non-negative integer")?),
+            "solver" => c.solver = Some(solver(&key, &v)?),
             _ => unreachable!("checked against IMAGE_KEYWORDS"),
         }
     }

@@ -166,7 +166,7 @@ def test_an_image_part_is_fitted_to_a_generated_disc():
     rows, cols = np.mgrid[0:h, 0:w]
     image = np.where((cols - 80.0) ** 2 / 30**2 + (rows - 60.0) ** 2 / 20**2 <= 1, 40, 230)
     parts = d.fit_image(image.astype(np.uint8), [(58, 61, 102, 61, 80, 47, 80, 75)],
-                        global_only=True, region=0.04)
+                        global_only=True)
     assert len(parts) == 1 and parts[0].converged and parts[0].stopped is None
     before, after = parts[0].outline
     assert after > before and after > 0.8
@@ -177,7 +177,12 @@ def test_an_image_part_is_fitted_to_a_generated_disc():
     with pytest.raises(ValueError, match="parts\\[0\\]"):
         d.fit_image(image, [(1, 2, 3)])
     with pytest.raises(ValueError, match="unknown option"):
-        d.fit_image(image, [(58, 61, 102, 61, 80, 47, 80, 75)], solver="solved")
+        d.fit_image(image, [(58, 61, 102, 61, 80, 47, 80, 75)], solvr="solved")
+    with pytest.raises(ValueError, match="region sets the paper's dynamics"):
+        d.fit_image(image, [(58, 61, 102, 61, 80, 47, 80, 75)], region=0.04)
+    paper = d.fit_image(image, [(58, 61, 102, 61, 80, 47, 80, 75)], global_only=True,
+                        region=0.04, solver="dynamics")
+    assert paper[0].converged and paper[0].stopped is None
 
 
 def test_the_dask_example_gives_the_cli_batchs_table(tmp_path):
@@ -217,6 +222,7 @@ IMAGE_VALUES = {
     "sigma": [0.25, 0.2, 1e-300], "band": [1e-300], "region": [1e300], "k": [3, 837],
     "nodes": [11, 964], "w0": [1e300], "w1": [1e300], "beta": [1e-300, 1e300],
     "max_steps": [1, 2**64], "global_only": [False], "fix_epsilon": [False],
+    "solver": ["dynamics", "solved", "paper"],
 }
 
 
@@ -254,7 +260,10 @@ def test_every_image_keyword_fits_finitely_or_raises_value_error(key):
     image = image.astype(np.uint8)
     for v in IMAGE_VALUES[key] + EVERYWHERE:
         options = {key: v}
-        if key != "max_steps":
+        if key != "solver":
+            # The dynamics' options act with solver="dynamics" (the solved fit refuses them).
+            options["solver"] = "dynamics"
+        if key not in ("max_steps", "solver"):
             options["max_steps"] = 20
         try:
             parts = d.fit_image(image, [(58, 61, 102, 61, 80, 47, 80, 75)], **options)

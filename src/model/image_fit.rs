@@ -40,7 +40,13 @@ use glam::{DMat3, DQuat, DVec2, DVec3};
 use std::sync::Arc;
 
 mod choices;
+mod contour;
+mod evidence;
+mod solved;
+use super::fit::Solver;
 pub use choices::ImageChoices;
+pub use evidence::{EDGE_HIGH, EDGE_LOW};
+pub use solved::{EDGE_REACH, MIN_HALF_WIDTH, REST_PX, SNAKE_NODES, TENSION_SIGMAS};
 
 /// A part's placement in the image plane: centre, major semi-axis (a vector) and minor semi-axis.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -289,8 +295,11 @@ pub struct ImageFitOptions {
     /// [`REST_WINDOW`] steps together (a part that only jitters in place as its outline nodes
     /// switch).
     pub tolerance: f64,
-    /// Step cap per part.
+    /// Step cap per part (the dynamics).
     pub max_steps: usize,
+    /// How a part comes to rest: solved for it by least squares ([`Solver::Solved`], see
+    /// [`mod@solved`]'s docs in the module's source), or the paper's dynamics.
+    pub solver: Solver,
 }
 
 impl Default for ImageFitOptions {
@@ -309,6 +318,7 @@ impl Default for ImageFitOptions {
             local: true,
             tolerance: 1e-5,
             max_steps: 3000,
+            solver: Solver::Solved,
         }
     }
 }
@@ -526,6 +536,58 @@ pub fn fit_part(
     initial: ModelState,
     opts: &ImageFitOptions,
 ) -> Result<ImagePartFit, StepError> {
+    if opts.solver == Solver::Solved {
+        let edges = evidence::edge_distance(&forces.potential);
+        let fits = solve_fits(tess, &forces.potential, edges.as_ref(), &[initial], opts);
+        return Ok(fits.into_iter().next().expect("one part in, one out"));
+    }
+    step_part(tess, forces, initial, opts)
+}
+
+/// The parts' solved fits (see [`ImageFitOptions::solver`]) from `initial`, reading the image's
+/// edge distance `edges`.
+fn solve_fits(
+    tess: &Tessellation,
+    potential: &ImagePotential,
+    edges: Option<&evidence::Raster>,
+    initial: &[ModelState],
+    opts: &ImageFitOptions,
+) -> Vec<ImagePartFit> {
+    let solved = solved::solve_parts(
+        potential,
+        edges,
+        tess,
+        initial,
+        opts.local,
+        opts.fix_epsilon,
+    );
+    let outline = |s: &ModelState| {
+        let mut x = Vec::new();
+        s.node_positions(tess, &mut x);
+        outline_potential(potential, &[(tess, &x)])
+    };
+    solved
+        .into_iter()
+        .zip(initial)
+        .map(|(s, start)| ImagePartFit {
+            outline_before: outline(start),
+            outline_after: outline(&s.state),
+            state: s.state,
+            steps: s.global_steps + s.local_steps,
+            global_steps: s.global_steps,
+            converged: s.converged,
+            stopped: None,
+        })
+        .collect()
+}
+
+/// [`fit_part`] by the paper's dynamics.
+fn step_part(
+    tess: &Tessellation,
+    forces: &ImageForces,
+    initial: ModelState,
+    opts: &ImageFitOptions,
+) -> Result<ImagePartFit, StepError> {
     let mut state = initial;
     let mut x = Vec::new();
     state.node_positions(tess, &mut x);
@@ -600,11 +662,18 @@ pub fn fit_image(
     opts: &ImageFitOptions,
 ) -> Result<Vec<ImagePartFit>, StepError> {
     let tess = Tessellation::new(opts.k);
+    let edges = (opts.solver == Solver::Solved)
+        .then(|| evidence::edge_distance(&potential))
+        .flatten();
+    if opts.solver == Solver::Solved {
+        let states: Vec<ModelState> = initial.iter().map(|a| a.state(&tess)).collect();
+        return Ok(solve_fits(&tess, &potential, edges.as_ref(), &states, opts));
+    }
     let forces = opts.forces(potential);
     // The parts side by side (as range parts are): a thread a part.
     crate::model::parallel::run_parallel(
         initial,
-        |axes, _| fit_part(&tess, &forces, axes.state(&tess), opts),
+        |axes, _| step_part(&tess, &forces, axes.state(&tess), opts),
         &mut |_: &()| {},
     )
     .into_iter()

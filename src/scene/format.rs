@@ -449,8 +449,8 @@ pub struct FitSettings {
     pub max_steps: Option<u32>,
     /// Run the global DOFs to rest before freeing the local ones (the dynamics).
     pub global_first: bool,
-    /// How a range part's fit comes to rest: `Solved` (absent: the default) or `Dynamics` (the
-    /// paper's explicit steps, as the paper's experiments run).
+    /// How a part's fit to its data comes to rest: `Solved` (absent: the default) or `Dynamics`
+    /// (the paper's explicit steps, as the paper's experiments run).
     #[serde(default, skip_serializing_if = "is_solved")]
     pub solver: Solver,
 }

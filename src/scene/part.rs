@@ -396,6 +396,7 @@ impl PartDef {
                 .fit
                 .max_steps
                 .map_or(defaults.max_steps, |m| m as usize),
+            solver: self.fit.solver,
         }
     }
 }

@@ -64,11 +64,11 @@ impl SceneDef {
         }
         for (i, part) in self.parts.iter().enumerate() {
             part.validate(file, &format!("parts[{i}]"), &self.data)?;
-            if part.fit.solver != Solver::Solved && !matches!(part.forces, Forces::Range { .. }) {
+            if part.fit.solver != Solver::Solved && matches!(part.forces, Forces::Free) {
                 return Err(SceneError::at_field(
                     file,
                     format!("parts[{i}].fit.solver"),
-                    "chooses how a range fit comes to rest; this part has no range forces",
+                    "chooses how a fit to data comes to rest; this part has no data",
                 ));
             }
         }

@@ -356,7 +356,6 @@ impl FitArgs {
             None => (self.image.take(), ImageArgs::default()),
         };
         image.overlay = self.out_overlay.take();
-        (image.options, image.sigma) = self.image_choices(k).resolve(image.options, image.sigma)?;
         let cloud_parts = match (self.parts, self.max_parts) {
             (Some(PartsArg::Count(0)), _) => {
                 return Err("parts = 0 is out of range: it must be at least 1".into());
@@ -377,8 +376,12 @@ impl FitArgs {
         }
         let source = self.source(base.points.as_ref().map(|p| p.0), image_path)?;
         let is_file = matches!(source, Source::File(_) | Source::Files(_));
-        if self.solver.is_some() && !is_file {
-            return Err("--solver acts on POINTS fits".into());
+        if matches!(source, Source::Image(_)) {
+            (image.options, image.sigma) =
+                self.image_choices(k).resolve(image.options, image.sigma)?;
+        }
+        if self.solver.is_some() && !is_file && !matches!(source, Source::Image(_)) {
+            return Err("--solver acts on POINTS and image fits".into());
         }
         let options = self
             .cloud_options(k)
@@ -460,6 +463,10 @@ impl FitArgs {
             },
             beta: self.beta,
             max_steps: self.max_steps.map(|n| n as usize),
+            solver: self.solver.map(|s| match s {
+                SolverArg::Solved => Solver::Solved,
+                SolverArg::Dynamics => Solver::Dynamics,
+            }),
         }
     }
 

@@ -246,6 +246,11 @@ impl ImagePotential {
         })
     }
 
+    /// ∇(G_σ ∗ I) at pixel `i` (row-major), per unit length, y up.
+    pub(crate) fn brightening_at_pixel(&self, i: usize) -> DVec2 {
+        self.brightening[i]
+    }
+
     /// Width in pixels.
     pub fn width(&self) -> usize {
         self.width

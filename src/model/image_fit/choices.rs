@@ -3,6 +3,7 @@
 //! image the same way.
 
 use super::ImageFitOptions;
+use crate::model::fit::Solver;
 
 /// A user's settings for an image fit; `None` and `false` keep the base's (the defaults, or a
 /// paper experiment's).
@@ -31,8 +32,10 @@ pub struct ImageChoices {
     pub w1: Option<f64>,
     /// Force strength β (> 0).
     pub beta: Option<f64>,
-    /// Step cap per part (at least 1).
+    /// Step cap per part (at least 1; the dynamics).
     pub max_steps: Option<usize>,
+    /// How the parts come to rest: solved (the default) or the paper's dynamics.
+    pub solver: Option<Solver>,
 }
 
 impl ImageChoices {
@@ -56,6 +59,25 @@ impl ImageChoices {
         o.dynamics.w1 = self.w1.unwrap_or(o.dynamics.w1);
         o.beta = self.beta.unwrap_or(o.beta);
         o.max_steps = self.max_steps.unwrap_or(o.max_steps);
+        o.solver = self.solver.unwrap_or(o.solver);
+        if o.solver == Solver::Solved {
+            let dynamics_only = [
+                ("paper_band", self.paper_band),
+                ("free_depth", self.free_depth),
+                ("band", self.band.is_some()),
+                ("region", self.region.is_some()),
+                ("w0", self.w0.is_some()),
+                ("w1", self.w1.is_some()),
+                ("beta", self.beta.is_some()),
+                ("max_steps", self.max_steps.is_some()),
+            ];
+            if let Some((name, _)) = dynamics_only.iter().find(|(_, given)| *given) {
+                return Err(format!(
+                    "{name} sets the paper's dynamics: it acts with solver dynamics, not with the \
+                     solved fit (the default)"
+                ));
+            }
+        }
         for (name, x, ok) in [
             ("sigma", sigma, sigma > 0.0),
             ("band", o.band, o.band > 0.0),
@@ -87,6 +109,7 @@ mod tests {
             global_only: true,
             fix_epsilon: true,
             region: Some(0.04),
+            solver: Some(Solver::Dynamics),
             ..ImageChoices::default()
         }
         .resolve(base, 2.0)
@@ -104,9 +127,17 @@ mod tests {
             (
                 ImageChoices {
                     band: Some(f64::NAN),
+                    solver: Some(Solver::Dynamics),
                     ..ImageChoices::default()
                 },
-                "band",
+                "band = NaN",
+            ),
+            (
+                ImageChoices {
+                    region: Some(0.04),
+                    ..ImageChoices::default()
+                },
+                "region sets the paper's dynamics",
             ),
             (
                 ImageChoices {

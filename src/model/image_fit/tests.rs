@@ -217,6 +217,7 @@ fn a_part_placed_across_one_edge_of_a_bar_fills_the_bar_instead_of_flattening_on
         k: 16,
         region: 0.1,
         max_steps: 1500,
+        solver: Solver::Dynamics,
         ..Default::default()
     };
     let fit = &fit_image(pot.clone(), &[start], &opts).unwrap()[0];

@@ -1,0 +1,244 @@
+//! The local stage of a solved image fit ([`super::solved`]): a closed contour on the fitted
+//! outline with one radial displacement per node, its tension, and its lift onto the membrane.
+
+use super::super::dynamics::ModelState;
+use super::super::fem::Tessellation;
+use super::super::lm::{LmOptions, Problem, solve_em};
+use super::super::superquadric::spow;
+use super::solved::{Area, Fields, KINDS, MIN_HALF_WIDTH, Outline, SNAKE_NODES, TENSION_SIGMAS};
+use glam::{DQuat, DVec2, DVec3};
+use std::f64::consts::TAU;
+
+/// The contour's unknowns: a radial displacement (pixels) per node.
+const M: usize = SNAKE_NODES;
+
+/// The contour at rest.
+pub(crate) struct Contour {
+    /// Each node's polar angle in the model's x–z plane, rising from 0 below 2π.
+    angle: [f64; M],
+    /// Each node's distance from the centre on the outline (pixels).
+    radius: [f64; M],
+    /// Each node's displacement along its ray (pixels).
+    pub delta: [f64; M],
+    /// Engine steps taken.
+    pub steps: usize,
+    /// True when the engine came to rest.
+    pub converged: bool,
+}
+
+/// Where an area pixel lies from the contour: the two nodes about its ray and its share of the
+/// way from the first to the second, its distance from the centre, and the outline's there.
+#[derive(Clone, Copy)]
+struct OnRay {
+    nodes: (usize, usize),
+    t: f64,
+    rho: f64,
+    radius: f64,
+}
+
+/// The contour's least-squares problem: residuals [`KINDS`] j + k at node j (see
+/// [`Fields::at`]), then the tension between node j and j + 1 at [`KINDS`] M + j, then one an
+/// area pixel.
+struct ContourProblem<'a> {
+    fields: &'a Fields<'a>,
+    area: Option<(&'a Area, Vec<OnRay>)>,
+    centre: DVec2,
+    ray: [DVec2; M],
+    radius: [f64; M],
+    weight: [f64; M],
+    tension: [f64; M],
+    least: f64,
+}
+
+impl ContourProblem<'_> {
+    fn node(&self, delta: &[f64; M], j: usize) -> DVec2 {
+        self.centre + self.ray[j] * (self.radius[j] + delta[j])
+    }
+
+    fn bounds(&self, j: usize) -> (f64, f64) {
+        (-(self.radius[j] - self.least).max(0.0), self.radius[j])
+    }
+
+    /// Area pixel `i`'s residual and its two nonzero derivatives (over its ray's two nodes).
+    fn area_residual(&self, d: &[f64; M], i: usize) -> Option<(f64, [(usize, f64); 2])> {
+        let (area, rays) = self.area.as_ref()?;
+        let ray = rays[i];
+        let (j, k) = ray.nodes;
+        let edge = ray.radius + (1.0 - ray.t) * d[j] + ray.t * d[k];
+        let (r, dr) = area.residual(i, ray.rho - edge);
+        Some((r, [(j, -dr * (1.0 - ray.t)), (k, -dr * ray.t)]))
+    }
+}
+
+impl Problem<M> for ContourProblem<'_> {
+    type Model = [f64; M];
+    type Foot = ();
+
+    fn len(&self) -> usize {
+        (KINDS + 1) * M + self.area.as_ref().map_or(0, |(a, _)| a.pixels.len())
+    }
+
+    fn evaluate(&self, d: &[f64; M], _: &[()]) -> (Vec<f64>, Vec<()>) {
+        let e = (0..self.len())
+            .map(|i| {
+                if i >= (KINDS + 1) * M {
+                    self.area_residual(d, i - (KINDS + 1) * M)
+                        .map_or(0.0, |(r, _)| r)
+                } else if i < KINDS * M {
+                    let j = i / KINDS;
+                    self.fields
+                        .at(i % KINDS, self.node(d, j))
+                        .map_or(0.0, |(r, _)| self.weight[j] * r)
+                } else {
+                    let j = i - KINDS * M;
+                    self.tension[j] * (d[(j + 1) % M] - d[j])
+                }
+            })
+            .collect();
+        (e, Vec::new())
+    }
+
+    fn gradient(&self, d: &[f64; M], i: usize, _: Option<&()>) -> Option<(f64, [f64; M])> {
+        let mut g = [0.0; M];
+        if i >= (KINDS + 1) * M {
+            let (r, parts) = self.area_residual(d, i - (KINDS + 1) * M)?;
+            for (j, v) in parts {
+                g[j] += v;
+            }
+            Some((r, g))
+        } else if i < KINDS * M {
+            let j = i / KINDS;
+            let (r, grad) = self.fields.at(i % KINDS, self.node(d, j))?;
+            g[j] = self.weight[j] * grad.dot(self.ray[j]);
+            Some((self.weight[j] * r, g))
+        } else {
+            let j = i - KINDS * M;
+            let k = (j + 1) % M;
+            g[k] = self.tension[j];
+            g[j] = -self.tension[j];
+            Some((self.tension[j] * (d[k] - d[j]), g))
+        }
+    }
+
+    fn moved(&self, d: &[f64; M], step: &[f64; M]) -> [f64; M] {
+        std::array::from_fn(|j| {
+            let (lo, hi) = self.bounds(j);
+            (d[j] + step[j]).clamp(lo, hi)
+        })
+    }
+
+    fn on_bound(&self, d: &[f64; M], j: usize) -> (bool, bool) {
+        let (lo, hi) = self.bounds(j);
+        (d[j] <= lo, d[j] >= hi)
+    }
+
+    fn held(&self, _: usize) -> bool {
+        false
+    }
+}
+
+/// Solves the contour on outline `o` (see [`super::solved`]'s module docs).
+pub(crate) fn solve_contour(
+    fields: &Fields,
+    area: Option<&Area>,
+    o: &Outline,
+    sigma: f64,
+    opts: &LmOptions,
+) -> Contour {
+    let etas: [f64; M] = std::array::from_fn(|j| TAU * j as f64 / M as f64);
+    let points = etas.map(|e| o.point(e));
+    let radius = points.map(|p| p.distance(o.c).max(1e-9));
+    let ray = std::array::from_fn(|j| (points[j] - o.c) / radius[j]);
+    let gap = |j: usize| points[j].distance(points[(j + 1) % M]).max(1e-9);
+    let length = TENSION_SIGMAS * sigma;
+    let angle = etas.map(|e| {
+        let (s, c) = e.sin_cos();
+        let (x, z) = (o.r[0] * spow(c, o.eps), o.r[1] * spow(s, o.eps));
+        z.atan2(x).rem_euclid(TAU)
+    });
+    let at = |phi: f64| {
+        let phi = phi.rem_euclid(TAU);
+        let j = angle.partition_point(|&a| a <= phi).max(1) - 1;
+        let k = (j + 1) % M;
+        let span = (angle[k] - angle[j]).rem_euclid(TAU).max(1e-12);
+        let t = ((phi - angle[j]).rem_euclid(TAU) / span).clamp(0.0, 1.0);
+        ((j, k), t)
+    };
+    let (ex, ez) = o.axes();
+    let area = area.map(|a| {
+        let rays = a
+            .pixels
+            .iter()
+            .map(|&q| {
+                let l = q - o.c;
+                let (nodes, t) = at(l.dot(ez).atan2(l.dot(ex)));
+                OnRay {
+                    nodes,
+                    t,
+                    rho: l.length(),
+                    radius: (1.0 - t) * radius[nodes.0] + t * radius[nodes.1],
+                }
+            })
+            .collect();
+        (a, rays)
+    });
+    let problem = ContourProblem {
+        fields,
+        area,
+        centre: o.c,
+        ray,
+        radius,
+        weight: std::array::from_fn(|j| (0.5 * (gap(j) + gap((j + M - 1) % M))).sqrt()),
+        tension: std::array::from_fn(|j| length / gap(j).sqrt()),
+        // A node stays at least two least semi-axes from the centre (or where the outline has it),
+        // so that the contour cannot thin a part below the global stage's bound.
+        least: 2.0 * MIN_HALF_WIDTH.max(sigma),
+    };
+    let fit = solve_em(&problem, &[0.0; M], 0.0, false, opts);
+    Contour {
+        angle,
+        radius,
+        delta: fit.model,
+        steps: fit.iterations as usize,
+        converged: fit.converged,
+    }
+}
+
+impl Contour {
+    /// The displacement and the outline's radius at polar angle `phi`, linear between nodes.
+    fn at(&self, phi: f64) -> (f64, f64) {
+        let phi = phi.rem_euclid(TAU);
+        let j = self.angle.partition_point(|&a| a <= phi).max(1) - 1;
+        let k = (j + 1) % M;
+        let span = (self.angle[k] - self.angle[j]).rem_euclid(TAU).max(1e-12);
+        let t = ((phi - self.angle[j]).rem_euclid(TAU) / span).clamp(0.0, 1.0);
+        (
+            self.delta[j] + t * (self.delta[k] - self.delta[j]),
+            self.radius[j] + t * (self.radius[k] - self.radius[j]),
+        )
+    }
+}
+
+/// Lifts `contour` onto the membrane of `state` (`pitch` plane units a pixel): a node projected a fraction t of the way out to the outline moves t δ along its ray.
+pub(crate) fn lift(contour: &Contour, pitch: f64, tess: &Tessellation, state: &mut ModelState) {
+    let mut model = ModelState {
+        translation: DVec3::ZERO,
+        rotation: DQuat::IDENTITY,
+        displacement: vec![DVec3::ZERO; tess.node_count()],
+        ..state.clone()
+    };
+    let mut x = Vec::new();
+    model.node_positions(tess, &mut x);
+    model.displacement.clear();
+    for s in &x {
+        let phi = s.z.atan2(s.x);
+        let (delta, radius) = contour.at(phi);
+        let rho = DVec2::new(s.x, s.z).length() / pitch;
+        let t = (rho / radius).min(1.0);
+        let (sp, cp) = phi.sin_cos();
+        model
+            .displacement
+            .push(DVec3::new(cp, 0.0, sp) * (t * delta * pitch));
+    }
+    state.displacement = model.displacement;
+}

@@ -1,0 +1,230 @@
+//! Photos fitted from a user's four clicks per object, scored by IoU against masks made for the
+//! tests (`assets/data/*_mask.png`; see `assets/data/ATTRIBUTION.md`), in every documented image
+//! mode.
+
+use bevy_deformable_sq::io::load_luminance;
+use bevy_deformable_sq::model::dynamics::ModelState;
+use bevy_deformable_sq::model::fem::Tessellation;
+use bevy_deformable_sq::model::fit::Solver;
+use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
+use bevy_deformable_sq::model::image_fit::{
+    ImageFitOptions, PartAxes, doll_experiment, fit_image, part_silhouette, parts_on,
+    silhouette_iou,
+};
+use glam::DVec2;
+use std::path::Path;
+use std::sync::Arc;
+
+/// A label image shipped beside a photo (`assets/data/*_mask.png`, 8-bit gray): 0 is background,
+/// k the k-th object's pixels. Returns the labels, row-major.
+fn load_labels(name: &str) -> (usize, usize, Vec<u8>) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("assets/data")
+        .join(name);
+    let (w, h, lum) = load_luminance(&path).unwrap();
+    (
+        w,
+        h,
+        lum.iter().map(|l| (l * 255.0).round() as u8).collect(),
+    )
+}
+
+/// Four pixel points on an object's mask as a user would click them: both ends of its major
+/// axis, then both ends of its minor axis, each 2σ from the centroid along the axis (a disc's
+/// radius), rounded to whole pixels.
+fn four_points(w: usize, labels: &[u8], k: u8) -> [DVec2; 4] {
+    let pixels: Vec<DVec2> = (0..labels.len())
+        .filter(|&i| labels[i] == k)
+        .map(|i| DVec2::new((i % w) as f64, (i / w) as f64))
+        .collect();
+    let n = pixels.len() as f64;
+    let c = pixels.iter().copied().sum::<DVec2>() / n;
+    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+    for p in &pixels {
+        let d = *p - c;
+        (sxx, sxy, syy) = (
+            sxx + d.x * d.x / n,
+            sxy + d.x * d.y / n,
+            syy + d.y * d.y / n,
+        );
+    }
+    let mean = (sxx + syy) / 2.0;
+    let spread = (((sxx - syy) / 2.0).powi(2) + sxy * sxy).sqrt();
+    let (l1, l2) = (mean + spread, (mean - spread).max(0.0));
+    let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+    let e1 = DVec2::new(angle.cos(), angle.sin());
+    let (a, b) = (2.0 * l1.sqrt() * e1, 2.0 * l2.sqrt() * e1.perp());
+    [c - a, c + a, c - b, c + b].map(|p| p.round())
+}
+
+/// `points` as a hurried user clicks them: each off by up to `slop` × the minor semi-axis in x
+/// and in y (deterministic), rounded to whole pixels.
+fn clicked(
+    points: [DVec2; 4],
+    slop: f64,
+    rng: &mut bevy_deformable_sq::synthetic::Rng,
+) -> [DVec2; 4] {
+    let radius = (points[3] - points[2]).length() / 2.0;
+    points.map(|p| {
+        (p + slop * radius * DVec2::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0))).round()
+    })
+}
+
+/// Fits every object of a photo from its four points and returns, per object, the IoU of the
+/// part's silhouette with the object's mask and whether the part came to rest.
+fn photo_fits(image: &str, mask: &str, opts: &ImageFitOptions, slop: f64) -> Vec<(f64, f64, bool)> {
+    use bevy_deformable_sq::model::image_measure::{iou, silhouette_mask};
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("assets/data")
+        .join(image);
+    let (w, h, lum) = load_luminance(&path).unwrap();
+    let potential = Arc::new(ImagePotential::new(w, h, lum, 2.0, ImageFrame::default()).unwrap());
+    let (mw, mh, labels) = load_labels(mask);
+    assert_eq!((mw, mh), (w, h));
+    let objects = *labels.iter().max().unwrap();
+    let mut rng = bevy_deformable_sq::synthetic::Rng::new(5);
+    let placed: Vec<PartAxes> = (1..=objects)
+        .map(|k| {
+            let points = clicked(four_points(w, &labels, k), slop, &mut rng);
+            PartAxes::from_points(&potential, points).unwrap()
+        })
+        .collect();
+    let fits = fit_image(potential.clone(), &placed, opts).unwrap();
+    let tess = Tessellation::new(opts.k);
+    let overlap = |state: &ModelState, k: u8| {
+        let mut x = Vec::new();
+        state.node_positions(&tess, &mut x);
+        let part = silhouette_mask(&potential, &[(&tess, &x)]);
+        let object: Vec<bool> = labels.iter().map(|&l| l == k).collect();
+        iou(&part, &object)
+    };
+    fits.iter()
+        .zip(&placed)
+        .zip(1..=objects)
+        .map(|((f, p), k)| {
+            (
+                overlap(&p.state(&tess), k),
+                overlap(&f.state, k),
+                f.converged,
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn coins_fitted_by_the_papers_dynamics_with_a_region_force_come_to_rest() {
+    // The 24 coins of a real photo (assets/data/coins.png; masks made for this test, see
+    // ATTRIBUTION.md), each placed from four clicks up to half its radius off, fitted as pure
+    // superquadrics by the paper's dynamics with the region force. Measured: IoU with the masks 0.51–0.91 (mean 0.72) as
+    // placed, 0.934–0.965 (mean 0.950) fitted with ε1 free (0.931–0.963 with ε held), every part at
+    // rest.
+    let opts = ImageFitOptions {
+        local: false,
+        region: 0.04,
+        solver: Solver::Dynamics,
+        ..ImageFitOptions::default()
+    };
+    let coins = photo_fits("coins.png", "coins_mask.png", &opts, 0.5);
+    assert_eq!(coins.len(), 24);
+    let placed = coins.iter().map(|c| c.0).fold(1.0, f64::min);
+    assert!(
+        placed < 0.6,
+        "the clicks are rough: least IoU as placed {placed}"
+    );
+    for (i, &(before, after, at_rest)) in coins.iter().enumerate() {
+        assert!(at_rest, "coin {}: not at rest", i + 1);
+        assert!(after >= 0.9, "coin {}: IoU {before:.3} → {after:.3}", i + 1);
+    }
+}
+
+/// Every documented image mode of the solved fit: the default (local DOFs), `--global-only`, and
+/// `--global-only --fix-epsilon`.
+fn solved_modes() -> [(&'static str, ImageFitOptions); 3] {
+    let d = ImageFitOptions::default();
+    [
+        ("default", d),
+        ("global only", ImageFitOptions { local: false, ..d }),
+        (
+            "global only, ε held",
+            ImageFitOptions {
+                local: false,
+                fix_epsilon: true,
+                ..d
+            },
+        ),
+    ]
+}
+
+#[test]
+fn coins_come_to_rest_on_their_outlines_in_every_solved_mode() {
+    // Measured (release): least IoU 0.925 / 0.919 / 0.918, mean 0.943 / 0.941 / 0.941, 24 of 24
+    // at rest in each mode (IoU 0.51–0.91 as placed).
+    for (mode, opts) in solved_modes() {
+        let coins = photo_fits("coins.png", "coins_mask.png", &opts, 0.5);
+        assert_eq!(coins.len(), 24);
+        for (i, &(before, after, at_rest)) in coins.iter().enumerate() {
+            assert!(at_rest, "{mode}: coin {} not at rest", i + 1);
+            assert!(
+                after >= 0.9,
+                "{mode}: coin {}: IoU {before:.3} → {after:.3}",
+                i + 1
+            );
+        }
+    }
+}
+
+#[test]
+fn the_spoon_of_a_colour_photo_comes_to_rest_on_its_bowl_in_every_solved_mode() {
+    // scikit-image's coffee photo (CC0), its spoon's bowl masked by hand
+    // (assets/data/coffee_mask.png, label 2). A reflective bowl on a red saucer: the threshold
+    // splits the bowl into highlights and reflections, so the part fits the edges alone.
+    // Measured (release): IoU 0.71 as placed → 0.934 / 0.942 / 0.944, at rest. The crema (label 1)
+    // is not asserted: its threshold joins it to the white rim, and it grows to the cup's top
+    // (0.83 → 0.38); see docs/results.md.
+    for (mode, opts) in solved_modes() {
+        let fits = photo_fits("coffee.png", "coffee_mask.png", &opts, 0.5);
+        let (before, after, at_rest) = fits[1];
+        assert!(fits.iter().all(|f| f.2), "{mode}: {fits:?}");
+        assert!(
+            at_rest && after >= 0.9,
+            "{mode}: IoU {before:.3} → {after:.3}"
+        );
+    }
+}
+
+#[test]
+fn the_dolls_eleven_parts_come_to_rest_on_the_horse() {
+    // The paper's doll experiment (its placements on assets/data/horse.png), solved: every part
+    // at rest, the union's IoU with the horse at least 0.93, no part under 5 px wide or 150 px,
+    // each at least 80 % on the horse. Measured (release): IoU 0.939, widths ≥ 5.1 px.
+    let e = doll_experiment();
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(e.image);
+    let (w, h, lum) = load_luminance(&path).unwrap();
+    let potential =
+        Arc::new(ImagePotential::new(w, h, lum, e.sigma, ImageFrame::default()).unwrap());
+    let placed: Vec<PartAxes> = e
+        .parts
+        .iter()
+        .map(|(_, p)| PartAxes::from_points(&potential, *p).unwrap())
+        .collect();
+    let fits = fit_image(potential.clone(), &placed, &e.options).unwrap();
+    let tess = Tessellation::new(e.options.k);
+    let xs: Vec<Vec<glam::DVec3>> = fits
+        .iter()
+        .map(|f| {
+            let mut x = Vec::new();
+            f.state.node_positions(&tess, &mut x);
+            x
+        })
+        .collect();
+    let iou = silhouette_iou(&potential, &parts_on(&tess, &xs));
+    assert!(iou >= 0.93, "union IoU {iou:.3}");
+    for (((name, _), f), x) in e.parts.iter().zip(&fits).zip(&xs) {
+        let s = part_silhouette(&potential, &tess, x);
+        assert!(f.state.is_finite() && f.converged, "{name}: not at rest");
+        assert!(
+            s.width >= 5.0 && s.area >= 150 && s.on_foreground >= 0.8,
+            "{name}: {s:?}"
+        );
+    }
+}
