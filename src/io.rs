@@ -279,9 +279,12 @@ fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
 /// A decoded image as row-major luminance in [0, 1] (row 0 at the top): width, height, values.
 pub type Luminance = (usize, usize, Vec<f64>);
 
+/// An image as width, height, luminance in [0, 1] and its RGB in [0, 1], row-major.
+pub type Pixels = (usize, usize, Vec<f64>, Vec<[f32; 3]>);
+
 /// Decodes PNG or JPEG bytes (format sniffed from the contents) to luminance (Rec. 709 weights;
-/// alpha ignored). `path` only names the source in errors.
-pub fn decode_luminance(path: &Path, bytes: &[u8]) -> Result<Luminance, IoError> {
+/// alpha ignored) and RGB. `path` only names the source in errors.
+pub fn decode_image(path: &Path, bytes: &[u8]) -> Result<Pixels, IoError> {
     let img = image::load_from_memory(bytes)
         .map_err(|e| err(path, format!("cannot decode the image: {e}")))?;
     let rgb = img.to_rgb32f();
@@ -292,20 +295,31 @@ pub fn decode_luminance(path: &Path, bytes: &[u8]) -> Result<Luminance, IoError>
             format!("image is {w}×{h} pixels; the potential needs at least 2×2"),
         ));
     }
-    let lum = rgb
-        .pixels()
-        .map(|p| crate::model::forces::image::luminance_of(p.0.map(f64::from)))
+    let colour: Vec<[f32; 3]> = rgb.pixels().map(|p| p.0).collect();
+    let lum = colour
+        .iter()
+        .map(|p| crate::model::forces::image::luminance_of(p.map(f64::from)))
         .collect();
-    Ok((w, h, lum))
+    Ok((w, h, lum, colour))
 }
 
-/// Reads a PNG or JPEG image file as luminance (see [`decode_luminance`]).
-pub fn load_luminance(path: &Path) -> Result<Luminance, IoError> {
+/// Decodes PNG or JPEG bytes to luminance (see [`decode_image`]).
+pub fn decode_luminance(path: &Path, bytes: &[u8]) -> Result<Luminance, IoError> {
+    decode_image(path, bytes).map(|(w, h, lum, _)| (w, h, lum))
+}
+
+/// Reads a PNG or JPEG image file as luminance and RGB (see [`decode_image`]).
+pub fn load_image(path: &Path) -> Result<Pixels, IoError> {
     if path.is_dir() {
         return Err(err(path, "is a directory, not an image"));
     }
     let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
-    decode_luminance(path, &bytes)
+    decode_image(path, &bytes)
+}
+
+/// Reads a PNG or JPEG image file as luminance (see [`decode_image`]).
+pub fn load_luminance(path: &Path) -> Result<Luminance, IoError> {
+    load_image(path).map(|(w, h, lum, _)| (w, h, lum))
 }
 
 /// Writes the image (dimmed luminance) with the projected outlines of models drawn over it, one

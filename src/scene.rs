@@ -31,7 +31,7 @@
 //! )
 //! ```
 
-use crate::io::{decode_luminance, decode_points};
+use crate::io::{decode_image, decode_points};
 use crate::model::deform::{GlobalDeformation, MAX_BEND, MAX_BEND_WIDTH, MAX_TAPER};
 use crate::model::dynamics::{DynamicsParams, FreeDofs, ModelState, StepError};
 use crate::model::fem::{MIN_K, Tessellation};

@@ -474,12 +474,15 @@ fn fit_image(
     parts: &Bound<'_, PyList>,
     options: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<Vec<ImagePart>> {
-    let (width, height, lum) = options::luminance(image)?;
+    let (width, height, lum, rgb) = options::luminance(image)?;
     let (opts, sigma) = options::image_options(options)?;
-    let potential = Arc::new(
-        ImagePotential::new(width, height, lum, sigma, ImageFrame::default())
-            .map_err(|e| value_error(format!("image: {e}")))?,
-    );
+    let potential = ImagePotential::new(width, height, lum, sigma, ImageFrame::default())
+        .and_then(|p| match rgb {
+            Some(rgb) => p.with_colour(rgb),
+            None => Ok(p),
+        })
+        .map_err(|e| value_error(format!("image: {e}")))?;
+    let potential = Arc::new(potential);
     let placed: Vec<PartAxes> = parts
         .iter()
         .enumerate()

@@ -209,8 +209,8 @@ pub fn image_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<(ImageFitO
 }
 
 /// An image array's width, height and row-major luminance in [0, 1]: (H, W) grey or (H, W, 3|4)
-/// colour (Rec. 709 weights), floats as they are and integers over 255.
-pub fn luminance(image: &Bound<'_, PyAny>) -> PyResult<(usize, usize, Vec<f64>)> {
+/// colour (Rec. 709 weights; its RGB kept), floats as they are and integers over 255.
+pub fn luminance(image: &Bound<'_, PyAny>) -> PyResult<Pixels> {
     let np = image.py().import("numpy")?;
     let array = np.call_method1("asarray", (image,))?;
     let integer: bool = np
@@ -223,17 +223,26 @@ pub fn luminance(image: &Bound<'_, PyAny>) -> PyResult<(usize, usize, Vec<f64>)>
     let shape: Vec<usize> = array.getattr("shape")?.extract()?;
     let scale = if integer { 1.0 / 255.0 } else { 1.0 };
     let flat: Vec<f64> = array.call_method0("ravel")?.extract()?;
-    let lum = match shape[..] {
-        [_, _] => flat.iter().map(|v| v * scale).collect(),
-        [_, _, 3 | 4] => flat
-            .chunks(shape[2])
-            .map(|c| scale * (0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]))
-            .collect(),
+    let (lum, rgb) = match shape[..] {
+        [_, _] => (flat.iter().map(|v| v * scale).collect(), None),
+        [_, _, 3 | 4] => (
+            flat.chunks(shape[2])
+                .map(|c| scale * (0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]))
+                .collect(),
+            Some(
+                flat.chunks(shape[2])
+                    .map(|c| [c[0], c[1], c[2]].map(|v| (scale * v) as f32))
+                    .collect(),
+            ),
+        ),
         _ => {
             return Err(value_error(format!(
                 "image: expected an (H, W) or (H, W, 3) array, got shape {shape:?}"
             )));
         }
     };
-    Ok((shape[1], shape[0], lum))
+    Ok((shape[1], shape[0], lum, rgb))
 }
+
+/// An image array's width, height, luminance and, for a colour array, its RGB.
+pub type Pixels = (usize, usize, Vec<f64>, Option<Vec<[f32; 3]>>);

@@ -3,7 +3,7 @@
 
 use crate::args::{Args, Source};
 use bevy_deformable_sq::io::{
-    load_luminance, load_points, write_model_obj, write_models_obj, write_obj, write_overlay_png,
+    load_image, load_points, write_model_obj, write_models_obj, write_obj, write_overlay_png,
 };
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
@@ -156,9 +156,10 @@ fn run_parts(points: &[DVec3], name: &str, count: PartCount, args: &Args) -> Res
 /// blobs of the thresholded image. One JSON line per part, then one for the whole image.
 fn run_image(path: &std::path::Path, args: &Args) -> Result<(), String> {
     let ia = &args.image;
-    let (w, h, lum) = load_luminance(path).map_err(|e| e.to_string())?;
+    let (w, h, lum, rgb) = load_image(path).map_err(|e| e.to_string())?;
     let potential = Arc::new(
         ImagePotential::new(w, h, lum, ia.sigma, ImageFrame::default())
+            .and_then(|p| p.with_colour(rgb))
             .map_err(|e| format!("{}: {e}", path.display()))?,
     );
     let placed: Vec<PartAxes> = if ia.parts.is_empty() {

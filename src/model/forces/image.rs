@@ -147,6 +147,8 @@ pub struct ImagePotential {
     brightening: Vec<DVec2>,
     /// The foreground's and the background's mean luminance, when the image is two-tone.
     two_tone: Option<RegionModel>,
+    /// The image's colour (RGB in [0, 1]) when it has any: what a part's figure is told by.
+    colour: Option<Vec<[f32; 3]>>,
 }
 
 /// Otsu's separability η (the share of the luminance's variance between the two classes of
@@ -243,12 +245,39 @@ impl ImagePotential {
             foreground,
             brightening,
             two_tone,
+            colour: None,
         })
     }
 
     /// ∇(G_σ ∗ I) at pixel `i` (row-major), per unit length, y up.
     pub(crate) fn brightening_at_pixel(&self, i: usize) -> DVec2 {
         self.brightening[i]
+    }
+
+    /// This potential with the image's colour (row-major RGB in [0, 1], the pixels of the
+    /// luminance it was built from): a part's figure is then told by colour
+    /// ([`crate::model::image_fit`]). A grey image (no pixel's channels differ by more than 1/255)
+    /// keeps none. Errors: the wrong number of pixels, or a value not finite.
+    pub fn with_colour(mut self, rgb: Vec<[f32; 3]>) -> Result<Self, ImageError> {
+        if rgb.len() != self.width * self.height {
+            return Err(ImageError::WrongSize {
+                got: rgb.len(),
+                expected: self.width * self.height,
+            });
+        }
+        if let Some(index) = rgb.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+            return Err(ImageError::NonFinite { index });
+        }
+        let chroma = |p: &[f32; 3]| {
+            p.iter().fold(f32::MIN, |a, &b| a.max(b)) - p.iter().fold(f32::MAX, |a, &b| a.min(b))
+        };
+        self.colour = rgb.iter().any(|p| chroma(p) > 1.0 / 255.0).then_some(rgb);
+        Ok(self)
+    }
+
+    /// The image's colour, when it has any (see [`Self::with_colour`]).
+    pub fn colour(&self) -> Option<&[[f32; 3]]> {
+        self.colour.as_deref()
     }
 
     /// Width in pixels.

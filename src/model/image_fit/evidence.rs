@@ -244,6 +244,70 @@ fn neighbours(width: usize, height: usize, i: usize) -> impl Iterator<Item = usi
     .flatten()
 }
 
+/// Two classes of a colour image: 2-means in RGB over the pixels `samples`, started from the
+/// split `start` (or, when it leaves a class empty, from the samples' mean and the sample
+/// farthest from it), then every pixel in the class of the nearer mean.
+fn colour_classes(
+    rgb: &[[f32; 3]],
+    samples: impl Iterator<Item = usize>,
+    start: impl Fn(usize) -> bool,
+) -> Vec<bool> {
+    let samples: Vec<usize> = samples.collect();
+    let colour = |i: usize| rgb[i].map(f64::from);
+    let means_of = |class: &[bool]| {
+        let mut sums = [[0.0f64; 3]; 2];
+        let mut counts = [0usize; 2];
+        for (&i, &c) in samples.iter().zip(class) {
+            let p = colour(i);
+            for k in 0..3 {
+                sums[usize::from(c)][k] += p[k];
+            }
+            counts[usize::from(c)] += 1;
+        }
+        (!counts.contains(&0)).then(|| [0, 1].map(|c| sums[c].map(|v| v / counts[c] as f64)))
+    };
+    let mut class: Vec<bool> = samples.iter().map(|&i| start(i)).collect();
+    let mut means = means_of(&class).unwrap_or_else(|| {
+        let n = samples.len().max(1) as f64;
+        let mean = samples.iter().fold([0.0; 3], |a, &i| {
+            let p = colour(i);
+            [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]
+        });
+        let d = |p: [f64; 3]| (0..3).map(|k| (p[k] - mean[k]).powi(2)).sum::<f64>();
+        let far = samples
+            .iter()
+            .map(|&i| colour(i))
+            .max_by(|a, b| d(*a).total_cmp(&d(*b)))
+            .unwrap_or(mean);
+        [mean, far]
+    });
+    for _ in 0..20 {
+        let next: Vec<bool> = samples
+            .iter()
+            .map(|&i| nearer_second(&means, rgb[i]))
+            .collect();
+        if next == class {
+            break;
+        }
+        class = next;
+        match means_of(&class) {
+            Some(m) => means = m,
+            None => break,
+        }
+    }
+    rgb.iter().map(|&p| nearer_second(&means, p)).collect()
+}
+
+/// True when colour `p` lies nearer the second mean than the first.
+fn nearer_second(means: &[[f64; 3]; 2], p: [f32; 3]) -> bool {
+    let d = |m: &[f64; 3]| {
+        (0..3)
+            .map(|k| (f64::from(p[k]) - m[k]).powi(2))
+            .sum::<f64>()
+    };
+    d(&means[1]) < d(&means[0])
+}
+
 /// Every component's depth: 0 on the image's border, else the fewest component boundaries
 /// crossed on a way from the border (a 0–1 breadth-first search over pixels).
 fn depths(width: usize, height: usize, label: &[u32], count: usize) -> Vec<u32> {
@@ -302,7 +366,15 @@ pub(crate) fn figure(
             .chain(inside.iter().map(|&i| lum[i]))
             .collect();
         let t = otsu_threshold(&window);
-        lum.iter().map(|&v| v > t).collect()
+        match pot.colour() {
+            Some(rgb) => {
+                let samples = (0..w * h)
+                    .filter(|&i| ring(DVec2::new((i % w) as f64, (i / w) as f64)))
+                    .chain(inside.iter().copied());
+                colour_classes(rgb, samples, |i| lum[i] > t)
+            }
+            None => lum.iter().map(|&v| v > t).collect(),
+        }
     };
     let (label, count) = components(w, h, &class);
     let depth = depths(w, h, &label, count);
@@ -427,5 +499,74 @@ mod tests {
         let d = depths(w, h, &label, n);
         let at = |c: usize, r: usize| d[label[r * w + c] as usize];
         assert_eq!((at(0, 0), at(1, 4), at(2, 4), at(4, 4)), (0, 1, 2, 3));
+    }
+
+    fn potential(w: usize, h: usize, lum: Vec<f64>) -> ImagePotential {
+        ImagePotential::new(
+            w,
+            h,
+            lum,
+            1.0,
+            crate::model::forces::image::ImageFrame::default(),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn the_figure_is_what_the_placement_lies_on_with_what_it_encloses() {
+        // A dark square (columns and rows 20..60) with a light hole (35..45) on a light ground;
+        // a placement half on the square, half on the ground.
+        let (w, h) = (80, 80);
+        let dark = |c: usize, r: usize| {
+            let sq = (20..60).contains(&c) && (20..60).contains(&r);
+            let hole = (35..45).contains(&c) && (35..45).contains(&r);
+            sq && !hole
+        };
+        let lum = (0..w * h)
+            .map(|i| if dark(i % w, i / w) { 0.1 } else { 0.9 })
+            .collect();
+        let pot = potential(w, h, lum);
+        let placed = |q: DVec2| (q - DVec2::new(20.0, 40.0)).length() < 10.0;
+        let ring = |q: DVec2| {
+            let d = (q - DVec2::new(20.0, 40.0)).length();
+            (10.0..14.2).contains(&d)
+        };
+        let f = figure(&pot, placed, ring).expect("a figure");
+        for i in 0..w * h {
+            let (c, r) = (i % w, i / w);
+            let square = (20..60).contains(&c) && (20..60).contains(&r);
+            assert_eq!(f[i], square, "pixel ({c}, {r})");
+        }
+    }
+
+    #[test]
+    fn colour_tells_apart_what_luminance_joins() {
+        // A red disc on a grey ground of the same luminance.
+        let (w, h) = (60, 60);
+        let red = [0.8f32, 0.2, 0.2];
+        let l = crate::model::forces::image::luminance_of(red.map(f64::from)) as f32;
+        let inside = |i: usize| {
+            (DVec2::new((i % w) as f64, (i / w) as f64) - DVec2::splat(30.0)).length() < 12.0
+        };
+        let rgb: Vec<[f32; 3]> = (0..w * h)
+            .map(|i| if inside(i) { red } else { [l; 3] })
+            .collect();
+        let lum = rgb
+            .iter()
+            .map(|p| crate::model::forces::image::luminance_of(p.map(f64::from)))
+            .collect();
+        let grey = potential(w, h, lum);
+        assert!(
+            grey.clone()
+                .with_colour(vec![[0.5; 3]; w * h])
+                .unwrap()
+                .colour()
+                .is_none()
+        );
+        let pot = grey.with_colour(rgb).unwrap();
+        let placed = |q: DVec2| (q - DVec2::splat(30.0)).length() < 9.0;
+        let ring = |q: DVec2| (9.0..12.7).contains(&(q - DVec2::splat(30.0)).length());
+        let f = figure(&pot, placed, ring).expect("a figure");
+        assert!((0..w * h).all(|i| f[i] == inside(i)));
     }
 }
