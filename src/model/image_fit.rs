@@ -1,6 +1,6 @@
-//! Fitting parts to a 2D image (section VI-A): placing them, running them to rest under the image
-//! forces of [`crate::model::forces::image`], and measuring how well their outlines sit on the
-//! image's edges.
+//! Fitting parts to a 2D image (section VI-A): placing them, bringing them to rest on the image
+//! (solved, or under the image forces of [`crate::model::forces::image`]), and measuring how well
+//! their outlines sit on the image's edges.
 //!
 //! **Placing a part.** The paper places each part from four points picked with the mouse: the
 //! centre and the ends of two axes. [`PartAxes::from_points`] takes both ends of the major axis
@@ -13,8 +13,20 @@
 //! it; its depth (the world z extent) is taken equal to the minor semi-axis, as for a body of
 //! revolution; ε1 = ε2 = 1.
 //!
-//! **The loop.** Each part runs on its own (parts do not interact): global DOFs until rest, then
-//! global and local together until rest, or `max_steps` in all. Rest is a step that moves no node
+//! **Solved (the default, beyond the paper).** Each part's projected outline, a superellipse
+//! (centre, turn, two semi-axes, ε1), is solved by the Levenberg–Marquardt engine of
+//! [`crate::model::lm`] against the distance from the image's Canny edges, the distance outside
+//! the part's figure (what its placement lies on, decided by what encloses what; by colour on a
+//! colour image, [`ImagePotential::with_colour`]) and the figure's area near it. Parts on one
+//! image are solved in sweeps until none moves ([`fit_parts_together`]): what one covers, the
+//! others neither gain nor lose. Then a closed contour with one radial displacement per node and
+//! its own tension is solved the same way and lifted onto the membrane. Both energies are bounded
+//! below, so every part ends at rest; bounds keep it at least [`MIN_HALF_WIDTH`] pixels in
+//! semi-axis and at most [`MAX_GROWTH`] times its placed area.
+//!
+//! **The paper's dynamics** ([`Solver::Dynamics`]). Each part runs on its own (parts do not
+//! interact): global DOFs until rest, then global and local together until rest, or `max_steps`
+//! in all. Rest is a step that moves no node
 //! by more than `tolerance` × the image's extent, or [`REST_WINDOW`] steps that together move none
 //! by more (a part that only jitters in place). With a region force, the global stage pulls the
 //! outline only to edges that face outwards ([`ImageForces::oriented`]); the local stage keeps the
@@ -297,8 +309,8 @@ pub struct ImageFitOptions {
     pub tolerance: f64,
     /// Step cap per part (the dynamics).
     pub max_steps: usize,
-    /// How a part comes to rest: solved for it by least squares ([`Solver::Solved`], see
-    /// [`mod@solved`]'s docs in the module's source), or the paper's dynamics.
+    /// How a part comes to rest: solved for it by least squares ([`Solver::Solved`], the
+    /// default; see the module docs), or by the paper's dynamics ([`Solver::Dynamics`]).
     pub solver: Solver,
 }
 
@@ -537,25 +549,25 @@ pub fn fit_part(
     opts: &ImageFitOptions,
 ) -> Result<ImagePartFit, StepError> {
     if opts.solver == Solver::Solved {
-        let edges = evidence::edge_distance(&forces.potential);
-        let fits = solve_fits(tess, &forces.potential, edges.as_ref(), &[initial], opts);
+        let fits = fit_parts_together(tess, &forces.potential, &[initial], opts);
         return Ok(fits.into_iter().next().expect("one part in, one out"));
     }
     step_part(tess, forces, initial, opts)
 }
 
-/// The parts' solved fits (see [`ImageFitOptions::solver`]) from `initial`, reading the image's
-/// edge distance `edges`.
-fn solve_fits(
+/// Solves parts on one image together from their states `initial` (see
+/// [`ImageFitOptions::solver`]): what one part covers, the others neither gain nor lose. The
+/// solved fit of [`fit_image`], for parts placed by their states (a scene's).
+pub fn fit_parts_together(
     tess: &Tessellation,
     potential: &ImagePotential,
-    edges: Option<&evidence::Raster>,
     initial: &[ModelState],
     opts: &ImageFitOptions,
 ) -> Vec<ImagePartFit> {
+    let edges = evidence::edge_distance(potential);
     let solved = solved::solve_parts(
         potential,
-        edges,
+        edges.as_ref(),
         tess,
         initial,
         opts.local,
@@ -662,12 +674,9 @@ pub fn fit_image(
     opts: &ImageFitOptions,
 ) -> Result<Vec<ImagePartFit>, StepError> {
     let tess = Tessellation::new(opts.k);
-    let edges = (opts.solver == Solver::Solved)
-        .then(|| evidence::edge_distance(&potential))
-        .flatten();
     if opts.solver == Solver::Solved {
         let states: Vec<ModelState> = initial.iter().map(|a| a.state(&tess)).collect();
-        return Ok(solve_fits(&tess, &potential, edges.as_ref(), &states, opts));
+        return Ok(fit_parts_together(&tess, &potential, &states, opts));
     }
     let forces = opts.forces(potential);
     // The parts side by side (as range parts are): a thread a part.
