@@ -232,7 +232,12 @@ fn keys(
     mut inspector: ResMut<InspectorState>,
     mut springs: ResMut<MouseSpringSettings>,
     mut orbit: ResMut<orbit::Orbit>,
-    mut controls: Query<(&mut SimControl, &ModelSettings, Has<RangeData>)>,
+    mut controls: Query<(
+        &mut SimControl,
+        &ModelSettings,
+        Has<RangeData>,
+        Has<ImageData>,
+    )>,
     mut commands: Commands,
 ) {
     if !egui.wants_any_keyboard_input() {
@@ -250,10 +255,10 @@ fn keys(
             (sandbox.placing, sandbox.joining) = (None, None);
         }
         if let Some(e) = inspector.selected
-            && let Ok((mut control, settings, range)) = controls.get_mut(e)
+            && let Ok((mut control, settings, range, image)) = controls.get_mut(e)
         {
             control.reset_requested |= pressed(KeyCode::KeyR);
-            if range && pressed(KeyCode::KeyF) {
+            if (range || image) && pressed(KeyCode::KeyF) {
                 commands.entity(e).insert(FitDriver::for_model(settings));
             }
         }

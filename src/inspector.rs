@@ -16,8 +16,8 @@ use crate::model::dynamics::ModelState;
 use crate::model::fit::residuals;
 use crate::model::superquadric::{LEAST_EPSILON, MAX_EPSILON};
 use crate::plugin::{
-    FemMesh, FitDriver, FitFinished, GlobalShape, Inertia, LocalDofs, ModelFrozen, ModelSettings,
-    PartJoint, RangeData, RigidState, SimControl,
+    FemMesh, FitDriver, FitFinished, GlobalShape, ImageData, Inertia, LocalDofs, ModelFrozen,
+    ModelSettings, PartJoint, RangeData, RigidState, SimControl,
 };
 use bevy::ecs::query::QueryData;
 use bevy::prelude::*;
@@ -140,8 +140,10 @@ pub struct InspectedModel {
     pub local: &'static LocalDofs,
     /// Exported with the shape.
     pub fem: &'static FemMesh,
-    /// Only models with range data are fitted to convergence.
+    /// Only models with range or image data are fitted to convergence.
     pub range: Has<RangeData>,
+    /// Image data: fitted to convergence by the solved image fit.
+    pub image: Has<ImageData>,
     /// A fit in progress.
     pub driver: Option<&'static FitDriver>,
     /// Plotted when present.
@@ -149,8 +151,8 @@ pub struct InspectedModel {
 }
 
 /// The selected model's panel, for any egui UI: the global shape, the dynamics, what is free,
-/// inertia, pause / step / reset, fit to convergence (range models), export to `export_dir` and
-/// the residual plot. Returns a line to show the user when a button did something.
+/// inertia, pause / step / reset, fit to convergence (models with range or image data), export
+/// to `export_dir` and the residual plot. Returns a line to show the user when a button did something.
 pub fn model_inspector_ui(
     ui: &mut egui::Ui,
     model: &mut InspectedModelItem,
@@ -196,7 +198,7 @@ pub fn model_inspector_ui(
     });
     let (mut fit, mut export_now) = (false, false);
     ui.horizontal(|ui| {
-        fit = model.range && ui.button("Fit to convergence").clicked();
+        fit = (model.range || model.image) && ui.button("Fit to convergence").clicked();
         export_now = ui.button("Export OBJ").clicked();
     });
     if fit {

@@ -209,7 +209,71 @@ fn a_driver_on_a_model_without_range_data_says_so() {
     until_done(&mut app, e);
     let d = app.world().get::<FitDriver>(e).unwrap();
     assert!(d.report().is_none());
-    assert!(d.error().unwrap().to_string().contains("no range data"));
+    assert!(
+        d.error()
+            .unwrap()
+            .to_string()
+            .contains("no range or image data")
+    );
+}
+
+#[test]
+fn an_image_model_fits_to_convergence_as_the_core_solves_it_bit_for_bit() {
+    use bevy_deformable_sq::model::fem::Tessellation;
+    use bevy_deformable_sq::model::forces::image::{ImageForces, ImageFrame, ImagePotential};
+    use bevy_deformable_sq::model::image_fit::{ImageFitOptions, PartAxes, fit_part};
+    use glam::DVec2;
+    // A dark ellipse (semi-axes 40 and 18 px) on a light ground, and a part placed off it.
+    let (w, h) = (160, 120);
+    let lum = (0..w * h)
+        .map(|i| {
+            let q = (DVec2::new((i % w) as f64, (i / w) as f64) - DVec2::new(80.0, 60.0))
+                / DVec2::new(40.0, 18.0);
+            if q.length_squared() <= 1.0 { 0.2 } else { 0.8 }
+        })
+        .collect();
+    let potential =
+        std::sync::Arc::new(ImagePotential::new(w, h, lum, 2.0, ImageFrame::default()).unwrap());
+    let k = 12;
+    let tess = Tessellation::new(k);
+    let axes = PartAxes::from_points(
+        &potential,
+        [(50.0, 64.0), (106.0, 60.0), (78.0, 48.0), (78.0, 74.0)].map(|(x, y)| DVec2::new(x, y)),
+    )
+    .unwrap();
+    let start = axes.state(&tess);
+    let mut app = app();
+    let e = app
+        .world_mut()
+        .spawn((
+            GlobalShape::new(start.shape, start.deformation),
+            RigidState {
+                translation: start.translation,
+                rotation: start.rotation,
+            },
+            FemMesh::new(k),
+            ImageData::new(potential.clone()),
+            FitDriver::new(FitOptions::default()),
+        ))
+        .id();
+    until_done(&mut app, e);
+    let d = app.world().get::<FitDriver>(e).unwrap();
+    assert!(d.error().is_none(), "{:?}", d.error());
+    let fitted = d.image_fit().expect("an image fit").clone();
+    assert!(d.converged() && d.report().is_none());
+    let core = fit_part(
+        &tess,
+        &ImageForces::new(potential.clone()),
+        start,
+        &ImageFitOptions {
+            k,
+            ..ImageFitOptions::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(fitted.state, core.state);
+    assert_eq!(state_of(&app, e), core.state);
+    assert!(app.world().get::<SimControl>(e).unwrap().paused);
 }
 
 #[test]

@@ -1,7 +1,8 @@
-//! [`FitDriver`]: a whole fit of a model's range data, run in the background and written into
-//! the model's components.
+//! [`FitDriver`]: a whole fit of a model's range data, or of its image, run in the background and
+//! written into the model's components.
 //!
-//! The fit is the core's, [`crate::model::fit::fit_watched`], the same plan `dsq fit` runs: a
+//! The fit is the core's, [`crate::model::fit::fit_watched`] for range data, the same plan
+//! `dsq fit` runs, and [`crate::model::image_fit::fit_part`] solved for its rest for an image: a
 //! fit through the plugin ends in the same state, bit for bit. It runs on Bevy's
 //! [`AsyncComputeTaskPool`], so a long fit never holds up a frame; while it runs, the state it
 //! has reached (the chosen superquadric) is written into the model as it arrives, and when it
@@ -11,11 +12,15 @@
 //! Removing the driver abandons the fit: the model keeps the state last written.
 
 use super::components::{
-    FemMesh, GlobalShape, LocalDofs, ModelSettings, RangeData, RigidState, SimControl,
+    FemMesh, GlobalShape, ImageData, LocalDofs, ModelSettings, RangeData, RigidState, SimControl,
+    model_state,
 };
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
-use crate::model::fit::{CloudOptions, FitError, FitOptions, FitProgress, FitReport, fit_watched};
+use crate::model::fit::{
+    CloudOptions, FitError, FitOptions, FitProgress, FitReport, Solver, fit_watched,
+};
+use crate::model::image_fit::{ImageFitOptions, ImagePartFit, fit_part};
 use bevy::prelude::*;
 use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, poll_once};
 use std::sync::{Arc, Mutex};
@@ -23,9 +28,11 @@ use std::sync::{Arc, Mutex};
 /// A fit to convergence of the model's [`RangeData`] with [`FitOptions`]: insert it on a model
 /// with range data and the fit starts at the next run of the plugin's schedule, from the options'
 /// initialisation (the data's moments by default, so it does not depend on where the model has
-/// been). [`FitFinished`](super::FitFinished) is sent when it ends. Every option means what it
-/// means for [`crate::model::fit::fit`]; a model without range data gets the error "no range
-/// data" ([`FitDriver::error`]).
+/// been). On a model with [`ImageData`] instead, the image fit solved for its rest
+/// ([`fit_part`] with [`Solver::Solved`]) runs from where the model is, on its tessellation, a
+/// pure superquadric when the options say `global_only`. [`FitFinished`](super::FitFinished) is
+/// sent when it ends. Every option means what it means for [`crate::model::fit::fit`]; a model
+/// with neither gets the error "no range or image data" ([`FitDriver::error`]).
 #[derive(Component)]
 #[component(on_insert = pause_for_the_fit)]
 pub struct FitDriver {
@@ -39,11 +46,19 @@ enum Run {
     Waiting,
     /// Running: the task, and the latest state and progress it has handed over.
     Running {
-        task: Task<Result<FitReport, FitError>>,
+        task: Task<Result<Fitted, FitError>>,
         latest: Arc<Mutex<Latest>>,
     },
-    /// Ended: the report, or why it failed.
-    Ended(Box<Result<FitReport, FitError>>),
+    /// Ended: the fit, or why it failed.
+    Ended(Box<Result<Fitted, FitError>>),
+}
+
+/// What a driver's fit gave.
+enum Fitted {
+    /// A range fit's report.
+    Range(FitReport),
+    /// An image part's fit, on a tessellation with this k.
+    Image(ImagePartFit, usize),
 }
 
 /// What a running fit has handed over and the app has not read yet.
@@ -98,13 +113,41 @@ impl FitDriver {
 
     /// True when the fit ended at rest.
     pub fn converged(&self) -> bool {
-        self.report().is_some_and(|r| r.converged)
+        match self.fitted() {
+            Some(Fitted::Range(r)) => r.converged,
+            Some(Fitted::Image(f, _)) => f.converged,
+            None => false,
+        }
     }
 
-    /// The fit's report, once it has ended without an error.
-    pub fn report(&self) -> Option<&FitReport> {
+    /// Steps (or solver iterations) the ended fit took; 0 before it ends or when it failed.
+    pub fn steps(&self) -> u64 {
+        match self.fitted() {
+            Some(Fitted::Range(r)) => r.steps as u64,
+            Some(Fitted::Image(f, _)) => f.steps as u64,
+            None => 0,
+        }
+    }
+
+    fn fitted(&self) -> Option<&Fitted> {
         match &self.run {
             Run::Ended(outcome) => outcome.as_ref().as_ref().ok(),
+            _ => None,
+        }
+    }
+
+    /// The range fit's report, once it has ended without an error.
+    pub fn report(&self) -> Option<&FitReport> {
+        match self.fitted() {
+            Some(Fitted::Range(r)) => Some(r),
+            _ => None,
+        }
+    }
+
+    /// The image fit, once it has ended without an error.
+    pub fn image_fit(&self) -> Option<&ImagePartFit> {
+        match self.fitted() {
+            Some(Fitted::Image(f, _)) => Some(f),
             _ => None,
         }
     }
@@ -172,7 +215,7 @@ fn write_state(
 pub(crate) fn drive_fits(
     mut models: Query<(
         &mut FitDriver,
-        Option<&RangeData>,
+        (Option<&RangeData>, Option<&ImageData>),
         &mut SimControl,
         &mut RigidState,
         &mut GlobalShape,
@@ -180,41 +223,59 @@ pub(crate) fn drive_fits(
         &mut FemMesh,
     )>,
 ) {
-    for (mut driver, range, mut control, mut rigid, mut shape, mut local, mut fem) in &mut models {
-        let components = (&mut *rigid, &mut *shape, &mut *local, &mut *fem);
+    for (mut driver, (range, image), mut control, mut rigid, mut shape, mut local, mut fem) in
+        &mut models
+    {
         let driver = &mut *driver;
         match &mut driver.run {
             Run::Waiting => {
                 control.paused = true;
-                let Some(range) = range else {
-                    let error = FitError::BadOption("no range data to fit".into());
+                let latest = Arc::new(Mutex::new(Latest::default()));
+                let shared = latest.clone();
+                let options = driver.options;
+                let task = if let Some(range) = range {
+                    let points = range.forces.points().to_vec();
+                    AsyncComputeTaskPool::get().spawn(async move {
+                        let progress = |p: &FitProgress| lock(&shared).progress = Some(*p);
+                        let watch = |tess: &Tessellation, state: &ModelState| {
+                            lock(&shared).state = Some((tess.k, state.clone()));
+                        };
+                        fit_watched(&points, &options, progress, watch).map(Fitted::Range)
+                    })
+                } else if let Some(image) = image {
+                    let forces = image.forces.clone();
+                    let start = model_state(&rigid, &shape, &local);
+                    let opts = ImageFitOptions {
+                        k: fem.k,
+                        local: !options.global_only,
+                        solver: Solver::Solved,
+                        ..ImageFitOptions::default()
+                    };
+                    AsyncComputeTaskPool::get().spawn(async move {
+                        let tess = Tessellation::new(opts.k);
+                        fit_part(&tess, &forces, start, &opts)
+                            .map(|f| Fitted::Image(f, opts.k))
+                            .map_err(FitError::Step)
+                    })
+                } else {
+                    let error = FitError::BadOption("no range or image data to fit".into());
                     driver.run = Run::Ended(Box::new(Err(error)));
                     continue;
                 };
-                let points = range.forces.points().to_vec();
-                let options = driver.options;
-                let latest = Arc::new(Mutex::new(Latest::default()));
-                let shared = latest.clone();
-                let task = AsyncComputeTaskPool::get().spawn(async move {
-                    let progress = |p: &FitProgress| lock(&shared).progress = Some(*p);
-                    let watch = |tess: &Tessellation, state: &ModelState| {
-                        lock(&shared).state = Some((tess.k, state.clone()));
-                    };
-                    fit_watched(&points, &options, progress, watch)
-                });
                 driver.run = Run::Running { task, latest };
             }
             Run::Running { task, latest } => {
                 if let Some((k, state)) = lock(latest).state.take() {
-                    write_state(components, k, &state);
+                    write_state((&mut rigid, &mut shape, &mut local, &mut fem), k, &state);
                 }
                 if let Some(outcome) = block_on(poll_once(task)) {
-                    if let Ok(report) = &outcome {
-                        write_state(
-                            (&mut *rigid, &mut *shape, &mut *local, &mut *fem),
-                            report.tess.k,
-                            &report.state,
-                        );
+                    let fitted = match &outcome {
+                        Ok(Fitted::Range(report)) => Some((report.tess.k, &report.state)),
+                        Ok(Fitted::Image(fit, k)) => Some((*k, &fit.state)),
+                        Err(_) => None,
+                    };
+                    if let Some((k, state)) = fitted {
+                        write_state((&mut rigid, &mut shape, &mut local, &mut fem), k, state);
                     }
                     driver.run = Run::Ended(Box::new(outcome));
                     control.paused = true;

@@ -68,7 +68,7 @@ pub(crate) fn send_messages(
             fits.write(FitFinished {
                 model,
                 at_rest: d.converged(),
-                steps: d.report().map_or(0, |r| r.steps as u64),
+                steps: d.steps(),
             });
         }
         reported.fit_done = fit_done;

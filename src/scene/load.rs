@@ -67,13 +67,14 @@ impl SceneData {
                     extent,
                 } => {
                     let bytes = read(path).map_err(|m| SceneError::at_field(file, &at, m))?;
-                    let (w, h, lum) = decode_luminance(Path::new(path), &bytes)
+                    let (w, h, lum, rgb) = decode_image(Path::new(path), &bytes)
                         .map_err(|e| SceneError::at_field(file, &at, e.to_string()))?;
                     let frame = ImageFrame {
                         center: DVec2::from_array(*center),
                         extent: *extent,
                     };
                     let potential = ImagePotential::new(w, h, lum, *sigma, frame)
+                        .and_then(|p| p.with_colour(rgb))
                         .map_err(|e| SceneError::at_field(file, &at, format!("{path}: {e}")))?;
                     out.images.insert(name.clone(), Arc::new(potential));
                 }
@@ -299,22 +300,75 @@ pub fn run_part(
     }
 }
 
-/// Runs every part of a scene (in parallel threads), in order.
+/// Runs every part of a scene (in parallel threads), in order. Image parts solved for their rest
+/// on one image with the same options are solved together
+/// ([`fit_parts_together`](crate::model::image_fit::fit_parts_together)): what one covers, the
+/// others neither gain nor lose.
 pub fn run_scene(
     def: &SceneDef,
     data: &SceneData,
     max_steps: Option<u32>,
 ) -> Vec<Result<PartRun, String>> {
-    std::thread::scope(|scope| {
+    let mut groups: Vec<(&str, ImageFitOptions, Vec<usize>)> = Vec::new();
+    for (i, part) in def.parts.iter().enumerate() {
+        let Forces::Image { data: image, .. } = &part.forces else {
+            continue;
+        };
+        let opts = part.image_options();
+        if opts.solver != Solver::Solved {
+            continue;
+        }
+        match groups
+            .iter_mut()
+            .find(|(d, o, _)| *d == image.as_str() && *o == opts)
+        {
+            Some((_, _, members)) => members.push(i),
+            None => groups.push((image.as_str(), opts, vec![i])),
+        }
+    }
+    groups.retain(|(_, _, members)| members.len() > 1);
+    let together: Vec<usize> = groups.iter().flat_map(|g| g.2.iter().copied()).collect();
+    let mut runs: Vec<Option<Result<PartRun, String>>> = std::thread::scope(|scope| {
         let handles: Vec<_> = (0..def.parts.len())
-            .map(|i| scope.spawn(move || run_part(def, data, i, max_steps)))
+            .map(|i| {
+                (!together.contains(&i))
+                    .then(|| scope.spawn(move || run_part(def, data, i, max_steps)))
+            })
             .collect();
         handles
             .into_iter()
             .map(|h| {
-                h.join()
-                    .unwrap_or_else(|_| Err("the part's thread panicked".into()))
+                h.map(|h| {
+                    h.join()
+                        .unwrap_or_else(|_| Err("the part's thread panicked".into()))
+                })
             })
             .collect()
-    })
+    });
+    for (image, opts, members) in &groups {
+        let Some(potential) = data.images.get(*image) else {
+            for &i in members {
+                runs[i] = Some(Err(format!("parts[{i}]: its image is not loaded")));
+            }
+            continue;
+        };
+        let states: Option<Vec<ModelState>> = members
+            .iter()
+            .map(|&i| data.initial_state(def, i))
+            .collect();
+        let Some(states) = states else {
+            for &i in members {
+                runs[i] = Some(Err(format!("parts[{i}]: cannot place the part")));
+            }
+            continue;
+        };
+        let tess = Tessellation::new(opts.k);
+        let fits = crate::model::image_fit::fit_parts_together(&tess, potential, &states, opts);
+        for (&i, fit) in members.iter().zip(fits) {
+            runs[i] = Some(Ok(PartRun::Image(fit)));
+        }
+    }
+    runs.into_iter()
+        .map(|r| r.unwrap_or_else(|| Err("the part was not run".into())))
+        .collect()
 }
