@@ -14,8 +14,8 @@ use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::Solver;
 use bevy_deformable_sq::model::forces::image::{ImageForces, ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::image_fit::{
-    ImageExperiment, ImageFitOptions, ImagePartFit, PartAxes, PartSilhouette, doll_experiment,
-    fit_image, outline_potential, part_silhouette, parts_on, pestle_experiment, silhouette_iou,
+    ImageExperiment, ImagePartFit, PartAxes, PartSilhouette, doll_experiment, fit_image,
+    outline_potential, part_silhouette, parts_on, pestle_experiment, silhouette_iou,
 };
 use bevy_deformable_sq::plugin::ImageData;
 use bevy_deformable_sq::prelude::*;
