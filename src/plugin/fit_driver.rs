@@ -56,9 +56,9 @@ enum Run {
 /// What a driver's fit gave.
 enum Fitted {
     /// A range fit's report.
-    Range(FitReport),
+    Range(Box<FitReport>),
     /// An image part's fit, on a tessellation with this k.
-    Image(ImagePartFit, usize),
+    Image(Box<ImagePartFit>, usize),
 }
 
 /// What a running fit has handed over and the app has not read yet.
@@ -240,7 +240,8 @@ pub(crate) fn drive_fits(
                         let watch = |tess: &Tessellation, state: &ModelState| {
                             lock(&shared).state = Some((tess.k, state.clone()));
                         };
-                        fit_watched(&points, &options, progress, watch).map(Fitted::Range)
+                        fit_watched(&points, &options, progress, watch)
+                            .map(|r| Fitted::Range(Box::new(r)))
                     })
                 } else if let Some(image) = image {
                     let forces = image.forces.clone();
@@ -254,7 +255,7 @@ pub(crate) fn drive_fits(
                     AsyncComputeTaskPool::get().spawn(async move {
                         let tess = Tessellation::new(opts.k);
                         fit_part(&tess, &forces, start, &opts)
-                            .map(|f| Fitted::Image(f, opts.k))
+                            .map(|f| Fitted::Image(Box::new(f), opts.k))
                             .map_err(FitError::Step)
                     })
                 } else {
