@@ -1,5 +1,19 @@
 use super::*;
 
+/// `o` with unknown `k` of (cx, cy, θ, r1, r3, ε1) moved by `s`.
+fn shifted(o: Outline, k: usize, s: f64) -> Outline {
+    let mut m = o;
+    match k {
+        0 => m.c.x += s,
+        1 => m.c.y += s,
+        2 => m.theta += s,
+        3 => m.r[0] += s,
+        4 => m.r[1] += s,
+        _ => m.eps += s,
+    }
+    m
+}
+
 #[test]
 fn the_outline_jacobian_is_the_central_difference() {
     let o = Outline {
@@ -12,18 +26,7 @@ fn the_outline_jacobian_is_the_central_difference() {
     for eta in [0.3, 1.9, 3.5, 5.0] {
         let (_, jac) = o.point_jacobian(eta);
         for (k, d) in jac.iter().enumerate() {
-            let shift = |s: f64| {
-                let mut m = o;
-                match k {
-                    0 => m.c.x += s,
-                    1 => m.c.y += s,
-                    2 => m.theta += s,
-                    3 => m.r[0] += s,
-                    4 => m.r[1] += s,
-                    _ => m.eps += s,
-                }
-                m.point(eta)
-            };
+            let shift = |s: f64| shifted(o, k, s).point(eta);
             let fd = (shift(h) - shift(-h)) / (2.0 * h);
             assert!(
                 (fd - *d).length() < 1e-6,
@@ -57,18 +60,7 @@ fn the_radial_distance_and_its_gradient_are_right() {
     ] {
         let (_, grad) = o.radial(q).unwrap();
         for (k, g) in grad.iter().enumerate() {
-            let shift = |s: f64| {
-                let mut m = o;
-                match k {
-                    0 => m.c.x += s,
-                    1 => m.c.y += s,
-                    2 => m.theta += s,
-                    3 => m.r[0] += s,
-                    4 => m.r[1] += s,
-                    _ => m.eps += s,
-                }
-                m.radial(q).unwrap().0
-            };
+            let shift = |s: f64| shifted(o, k, s).radial(q).unwrap().0;
             let fd = (shift(h) - shift(-h)) / (2.0 * h);
             assert!(
                 (fd - g).abs() < 1e-6 * (1.0 + g.abs()),
