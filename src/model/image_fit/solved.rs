@@ -258,6 +258,7 @@ impl Fields<'_> {
 /// The area term: pixels about the placed outline, each with the figure's soft membership m, and
 /// the residual w (H − m) where H = ½(1 − tanh(d/h)) is the part's own soft silhouette at the
 /// pixel's signed distance d from its outline.
+#[derive(Clone)]
 pub(super) struct Area {
     pub(super) pixels: Vec<DVec2>,
     pub(super) membership: Vec<f64>,
@@ -492,7 +493,8 @@ struct Part<'a> {
     depth: f64,
     e2: f64,
     z: f64,
-    figure: Option<Raster>,
+    /// The figure's signed distance and the area term's pixels, when the part has a figure.
+    figure: Option<(Raster, Area)>,
     edges: Option<&'a Raster>,
     bounds: Bounds,
     sigma: f64,
@@ -504,32 +506,34 @@ impl<'a> Part<'a> {
         let sigma = pot.sigma();
         let least = MIN_HALF_WIDTH.max(sigma);
         let most = MAX_GROWTH.sqrt() * placed.r[0].max(placed.r[1]);
+        let grown = Outline {
+            r: placed.r.map(|r| r * std::f64::consts::SQRT_2),
+            ..placed
+        };
+        let figure = evidence::figure_distance(
+            pot,
+            |q| placed.contains(q),
+            |q| grown.contains(q) && !placed.contains(q),
+        )
+        .map(|f| {
+            let a = Area::about(&placed, &f, sigma, (pot.width(), pot.height()));
+            (f, a)
+        })
+        .filter(|(f, a)| {
+            // A figure that fills the part's whole reach cannot tell where it ends; on a photo,
+            // neither can one larger than the part may grow.
+            let n = a.membership.len().max(1) as f64;
+            let placed_area = std::f64::consts::PI * placed.r[0] * placed.r[1];
+            a.membership.iter().sum::<f64>() / n < FILLED
+                && (pot.two_tone().is_some()
+                    || (f.inside_count() as f64) <= MAX_GROWTH * placed_area)
+        });
         Self {
             placed,
             depth,
             e2,
             z: initial.translation.z,
-            figure: {
-                let grown = Outline {
-                    r: placed.r.map(|r| r * std::f64::consts::SQRT_2),
-                    ..placed
-                };
-                evidence::figure_distance(
-                    pot,
-                    |q| placed.contains(q),
-                    |q| grown.contains(q) && !placed.contains(q),
-                )
-                .filter(|f| {
-                    // A figure that fills the part's whole reach cannot tell where it ends; on a
-                    // photo, neither can one larger than the part may grow.
-                    let a = Area::about(&placed, f, sigma, (pot.width(), pot.height()));
-                    let n = a.membership.len().max(1) as f64;
-                    let placed_area = std::f64::consts::PI * placed.r[0] * placed.r[1];
-                    a.membership.iter().sum::<f64>() / n < FILLED
-                        && (pot.two_tone().is_some()
-                            || (f.inside_count() as f64) <= MAX_GROWTH * placed_area)
-                })
-            },
+            figure,
             edges,
             bounds: Bounds {
                 r: [least, most.max(least)],
@@ -544,7 +548,7 @@ impl<'a> Part<'a> {
         let minor = self.placed.r[0].min(self.placed.r[1]);
         Fields {
             edges: self.edges,
-            figure: self.figure.as_ref(),
+            figure: self.figure.as_ref().map(|(f, _)| f),
             edge_cap: EDGE_REACH * self.sigma,
             figure_cap: minor.max(EDGE_REACH * self.sigma),
         }
@@ -561,8 +565,8 @@ impl<'a> Part<'a> {
     }
 
     /// The area term with the other parts' outlines `others` covering what they cover.
-    fn area(&self, size: (usize, usize), others: &[Outline]) -> Option<Area> {
-        let mut area = Area::about(&self.placed, self.figure.as_ref()?, self.sigma, size);
+    fn area(&self, others: &[Outline]) -> Option<Area> {
+        let mut area = self.figure.as_ref()?.1.clone();
         area.cover(others);
         Some(area)
     }
@@ -612,7 +616,6 @@ pub(crate) fn solve_parts(
     local: bool,
     hold_eps: bool,
 ) -> Vec<Solved> {
-    let size = (pot.width(), pot.height());
     let parts: Vec<Part> = initial.iter().map(|s| Part::new(pot, edges, s)).collect();
     let mut outlines: Vec<Outline> = parts.iter().map(Part::start).collect();
     let mut steps = vec![0; parts.len()];
@@ -624,7 +627,7 @@ pub(crate) fn solve_parts(
                 .filter(|&j| j != k)
                 .map(|j| outlines[j])
                 .collect();
-            let area = part.area(size, &others);
+            let area = part.area(&others);
             let (o, n, at_rest, moved) = part.solve_global(outlines[k], area.as_ref(), hold_eps);
             outlines[k] = o;
             steps[k] += n;
@@ -649,7 +652,7 @@ pub(crate) fn solve_parts(
                     .filter(|&j| j != k)
                     .map(|j| outlines[j])
                     .collect();
-                let area = part.area(size, &others);
+                let area = part.area(&others);
                 let snake = super::contour::solve_contour(
                     &part.fields(),
                     area.as_ref(),

@@ -109,7 +109,7 @@ fn a_solved_part_lowers_its_energy_stays_finite_and_comes_to_rest_on_its_truth()
     };
     let start = placed.state(&pot, 13.0 * pot.pitch(), 1.0, 0.0, &tess);
     let part = Part::new(&pot, edges.as_ref(), &start);
-    let area = part.area((pot.width(), pot.height()), &[]);
+    let area = part.area(&[]);
     let fields = part.fields();
     let (etas, weights) = samples(&part.placed, 100.0);
     let problem = GlobalProblem {
