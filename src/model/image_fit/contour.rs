@@ -145,6 +145,24 @@ pub(crate) fn solve_contour(
     sigma: f64,
     opts: &LmOptions,
 ) -> Contour {
+    let (problem, angle) = contour_problem(fields, area, o, sigma);
+    let fit = solve_em(&problem, &[0.0; M], 0.0, false, opts);
+    Contour {
+        angle,
+        radius: problem.radius,
+        delta: fit.model,
+        steps: fit.iterations as usize,
+        converged: fit.converged,
+    }
+}
+
+/// The contour's problem on outline `o`, and its nodes' polar angles.
+fn contour_problem<'a>(
+    fields: &'a Fields,
+    area: Option<&'a Area>,
+    o: &Outline,
+    sigma: f64,
+) -> (ContourProblem<'a>, [f64; M]) {
     let etas: [f64; M] = std::array::from_fn(|j| TAU * j as f64 / M as f64);
     let points = etas.map(|e| o.point(e));
     let radius = points.map(|p| p.distance(o.c).max(1e-9));
@@ -194,14 +212,7 @@ pub(crate) fn solve_contour(
         // so that the contour cannot thin a part below the global stage's bound.
         least: 2.0 * MIN_HALF_WIDTH.max(sigma),
     };
-    let fit = solve_em(&problem, &[0.0; M], 0.0, false, opts);
-    Contour {
-        angle,
-        radius,
-        delta: fit.model,
-        steps: fit.iterations as usize,
-        converged: fit.converged,
-    }
+    (problem, angle)
 }
 
 impl Contour {
@@ -241,4 +252,76 @@ pub(crate) fn lift(contour: &Contour, pitch: f64, tess: &Tessellation, state: &m
             .push(DVec3::new(cp, 0.0, sp) * (t * delta * pitch));
     }
     state.displacement = model.displacement;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::solved::tests::{blob, part_on};
+    use super::*;
+
+    #[test]
+    fn the_contours_gradient_is_the_central_difference_and_its_energy_falls() {
+        let (pot, truth) = blob();
+        let edges = super::super::evidence::edge_distance(&pot);
+        let part = part_on(&pot, edges.as_ref());
+        let fields = part.fields();
+        let area = part.area(&[]);
+        // The contour on an outline a little inside the truth: it has somewhere to go.
+        let o = Outline {
+            r: truth.r.map(|r| r - 3.0),
+            ..truth
+        };
+        let (problem, _) = contour_problem(&fields, area.as_ref(), &o, pot.sigma());
+        let d: [f64; M] = std::array::from_fn(|j| 0.7 * ((j as f64) * 0.4).sin());
+        let (e0, _) = problem.evaluate(&d, &[]);
+        let h = 1e-6;
+        // Every kind of residual: edge, region, tension, area.
+        let mut checked = 0;
+        for i in (0..problem.len()).step_by(7) {
+            let Some((r, g)) = problem.gradient(&d, i, None) else {
+                continue;
+            };
+            assert!((r - e0[i]).abs() < 1e-12, "residual {i}");
+            for k in [i / KINDS % M, (i / KINDS + 1) % M, 3] {
+                let mut plus = d;
+                let mut minus = d;
+                plus[k] += h;
+                minus[k] -= h;
+                let fd = (problem.evaluate(&plus, &[]).0[i] - problem.evaluate(&minus, &[]).0[i])
+                    / (2.0 * h);
+                assert!(
+                    (fd - g[k]).abs() < 1e-5 * (1.0 + g[k].abs()),
+                    "residual {i} node {k}: {fd} vs {}",
+                    g[k]
+                );
+            }
+            checked += usize::from(g.iter().any(|g| g.abs() > 1e-3));
+        }
+        assert!(checked > 20, "{checked} residuals with a slope");
+        let cost = |d: &[f64; M]| {
+            problem
+                .evaluate(d, &[])
+                .0
+                .iter()
+                .map(|e| e * e)
+                .sum::<f64>()
+        };
+        let fit = solve_contour(
+            &fields,
+            area.as_ref(),
+            &o,
+            pot.sigma(),
+            &super::super::solved::engine_options(),
+        );
+        assert!(fit.converged && fit.delta.iter().all(|x| x.is_finite()));
+        assert!(
+            cost(&fit.delta) < 0.5 * cost(&[0.0; M]),
+            "{} → {}",
+            cost(&[0.0; M]),
+            cost(&fit.delta)
+        );
+        // The contour moves out onto the truth, about 3 px.
+        let mean = fit.delta.iter().sum::<f64>() / M as f64;
+        assert!((mean - 3.0).abs() < 1.0, "mean displacement {mean}");
+    }
 }

@@ -461,7 +461,7 @@ impl Problem<N> for GlobalProblem<'_> {
 }
 
 /// Settings the engine runs each stage with: no outlier model (the residuals saturate instead).
-fn engine_options() -> LmOptions {
+pub(super) fn engine_options() -> LmOptions {
     LmOptions {
         mixture: Mixture {
             outlier_ratio: 0.0,
@@ -488,7 +488,7 @@ pub(crate) struct Solved {
 }
 
 /// What one part's solve reads, fixed from its placement.
-struct Part<'a> {
+pub(super) struct Part<'a> {
     placed: Outline,
     depth: f64,
     e2: f64,
@@ -501,7 +501,11 @@ struct Part<'a> {
 }
 
 impl<'a> Part<'a> {
-    fn new(pot: &ImagePotential, edges: Option<&'a Raster>, initial: &ModelState) -> Self {
+    pub(super) fn new(
+        pot: &ImagePotential,
+        edges: Option<&'a Raster>,
+        initial: &ModelState,
+    ) -> Self {
         let (placed, depth, e2) = Outline::of_state(pot, initial);
         let sigma = pot.sigma();
         let least = MIN_HALF_WIDTH.max(sigma);
@@ -544,7 +548,7 @@ impl<'a> Part<'a> {
         }
     }
 
-    fn fields(&self) -> Fields<'_> {
+    pub(super) fn fields(&self) -> Fields<'_> {
         let minor = self.placed.r[0].min(self.placed.r[1]);
         Fields {
             edges: self.edges,
@@ -565,7 +569,7 @@ impl<'a> Part<'a> {
     }
 
     /// The area term with the other parts' outlines `others` covering what they cover.
-    fn area(&self, others: &[Outline]) -> Option<Area> {
+    pub(super) fn area(&self, others: &[Outline]) -> Option<Area> {
         let mut area = self.figure.as_ref()?.1.clone();
         area.cover(others);
         Some(area)
@@ -675,4 +679,4 @@ pub(crate) fn solve_parts(
 }
 
 #[cfg(test)]
-mod tests;
+pub(super) mod tests;

@@ -70,8 +70,14 @@ fn the_radial_distance_and_its_gradient_are_right() {
     }
 }
 
-/// A dark superellipse on a light ground, blurred a little: its truth is known.
-fn blob(truth: &Outline) -> ImagePotential {
+/// A dark superellipse on a light ground: the image and its truth.
+pub(in crate::model::image_fit) fn blob() -> (ImagePotential, Outline) {
+    let truth = Outline {
+        c: DVec2::new(82.0, 57.0),
+        theta: 0.5,
+        r: [18.0, 34.0],
+        eps: 0.5,
+    };
     let (w, h) = (160, 120);
     let lum = (0..w * h)
         .map(|i| {
@@ -79,34 +85,81 @@ fn blob(truth: &Outline) -> ImagePotential {
             if truth.contains(q) { 0.2 } else { 0.8 }
         })
         .collect();
-    ImagePotential::new(
-        w,
-        h,
-        lum,
-        2.0,
-        crate::model::forces::image::ImageFrame::default(),
-    )
-    .unwrap()
+    let frame = crate::model::forces::image::ImageFrame::default();
+    (ImagePotential::new(w, h, lum, 2.0, frame).unwrap(), truth)
 }
 
-#[test]
-fn a_solved_part_lowers_its_energy_stays_finite_and_comes_to_rest_on_its_truth() {
-    let truth = Outline {
-        c: DVec2::new(82.0, 57.0),
-        theta: 0.5,
-        r: [18.0, 34.0],
-        eps: 0.5,
-    };
-    let pot = blob(&truth);
-    let edges = evidence::edge_distance(&pot);
-    let tess = Tessellation::new(15);
-    // Placed off: shifted, turned, an ellipse of the wrong size.
-    let placed = Outline {
+/// The ellipse placed off [`blob`]'s truth: shifted, turned, of the wrong size.
+fn placed_off(truth: &Outline) -> Outline {
+    Outline {
         c: truth.c + DVec2::new(6.0, -4.0),
         theta: 0.3,
         r: [13.0, 27.0],
         eps: 1.0,
+    }
+}
+
+/// A part placed off [`blob`]'s truth.
+pub(in crate::model::image_fit) fn part_on<'a>(
+    pot: &ImagePotential,
+    edges: Option<&'a Raster>,
+) -> Part<'a> {
+    let (_, truth) = blob();
+    let tess = Tessellation::new(3);
+    let start = placed_off(&truth).state(pot, 13.0 * pot.pitch(), 1.0, 0.0, &tess);
+    Part::new(pot, edges, &start)
+}
+
+#[test]
+fn the_global_gradient_is_the_central_difference() {
+    let (pot, truth) = blob();
+    let edges = evidence::edge_distance(&pot);
+    let part = part_on(&pot, edges.as_ref());
+    let area = part.area(&[]);
+    let fields = part.fields();
+    let (etas, weights) = samples(&part.placed, 100.0);
+    let problem = GlobalProblem {
+        fields: &fields,
+        area: area.as_ref(),
+        etas,
+        weights,
+        bounds: part.bounds,
+        hold_eps: false,
     };
+    // Between the placement and the truth, where every residual has a slope.
+    let o = Outline {
+        c: truth.c + DVec2::new(2.3, -1.7),
+        theta: 0.43,
+        r: [16.2, 31.1],
+        eps: 0.73,
+    };
+    let (e0, _) = problem.evaluate(&o, &[]);
+    let h = 1e-6;
+    let mut checked = 0;
+    for i in (0..problem.len()).step_by(5) {
+        let Some((r, g)) = problem.gradient(&o, i, None) else {
+            continue;
+        };
+        assert!((r - e0[i]).abs() < 1e-12, "residual {i}");
+        for (k, gk) in g.iter().enumerate() {
+            let at = |s: f64| problem.evaluate(&shifted(o, k, s), &[]).0[i];
+            let fd = (at(h) - at(-h)) / (2.0 * h);
+            assert!(
+                (fd - gk).abs() < 1e-4 * (1.0 + gk.abs()),
+                "residual {i} unknown {k}: {fd} vs {gk}"
+            );
+        }
+        checked += usize::from(g.iter().any(|g| g.abs() > 1e-3));
+    }
+    assert!(checked > 100, "{checked} residuals with a slope");
+}
+
+#[test]
+fn a_solved_part_lowers_its_energy_stays_finite_and_comes_to_rest_on_its_truth() {
+    let (pot, truth) = blob();
+    let edges = evidence::edge_distance(&pot);
+    let tess = Tessellation::new(15);
+    let placed = placed_off(&truth);
     let start = placed.state(&pot, 13.0 * pot.pitch(), 1.0, 0.0, &tess);
     let part = Part::new(&pot, edges.as_ref(), &start);
     let area = part.area(&[]);
