@@ -58,7 +58,9 @@ mod solved;
 use super::fit::Solver;
 pub use choices::ImageChoices;
 pub use evidence::{EDGE_HIGH, EDGE_LOW};
-pub use solved::{EDGE_REACH, MIN_HALF_WIDTH, REST_PX, SNAKE_NODES, TENSION_SIGMAS};
+pub use solved::{
+    AREA_SIGMAS, EDGE_REACH, FILLED, MIN_HALF_WIDTH, REST_PX, SNAKE_NODES, TENSION_SIGMAS,
+};
 
 /// A part's placement in the image plane: centre, major semi-axis (a vector) and minor semi-axis.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -174,14 +174,6 @@ fn contour_problem<'a>(
         let (x, z) = (o.r[0] * spow(c, o.eps), o.r[1] * spow(s, o.eps));
         z.atan2(x).rem_euclid(TAU)
     });
-    let at = |phi: f64| {
-        let phi = phi.rem_euclid(TAU);
-        let j = angle.partition_point(|&a| a <= phi).max(1) - 1;
-        let k = (j + 1) % M;
-        let span = (angle[k] - angle[j]).rem_euclid(TAU).max(1e-12);
-        let t = ((phi - angle[j]).rem_euclid(TAU) / span).clamp(0.0, 1.0);
-        ((j, k), t)
-    };
     let (ex, ez) = o.axes();
     let area = area.map(|a| {
         let rays = a
@@ -189,7 +181,7 @@ fn contour_problem<'a>(
             .iter()
             .map(|&q| {
                 let l = q - o.c;
-                let (nodes, t) = at(l.dot(ez).atan2(l.dot(ex)));
+                let (nodes, t) = bracket(&angle, l.dot(ez).atan2(l.dot(ex)));
                 OnRay {
                     nodes,
                     t,
@@ -218,11 +210,7 @@ fn contour_problem<'a>(
 impl Contour {
     /// The displacement and the outline's radius at polar angle `phi`, linear between nodes.
     fn at(&self, phi: f64) -> (f64, f64) {
-        let phi = phi.rem_euclid(TAU);
-        let j = self.angle.partition_point(|&a| a <= phi).max(1) - 1;
-        let k = (j + 1) % M;
-        let span = (self.angle[k] - self.angle[j]).rem_euclid(TAU).max(1e-12);
-        let t = ((phi - self.angle[j]).rem_euclid(TAU) / span).clamp(0.0, 1.0);
+        let ((j, k), t) = bracket(&self.angle, phi);
         (
             self.delta[j] + t * (self.delta[k] - self.delta[j]),
             self.radius[j] + t * (self.radius[k] - self.radius[j]),
@@ -230,7 +218,19 @@ impl Contour {
     }
 }
 
-/// Lifts `contour` onto the membrane of `state` (`pitch` plane units a pixel): a node projected a fraction t of the way out to the outline moves t δ along its ray.
+/// The two nodes whose polar angles (`angle`, rising from 0 below 2π) bracket `phi`, and its
+/// share of the way from the first to the second.
+fn bracket(angle: &[f64; M], phi: f64) -> ((usize, usize), f64) {
+    let phi = phi.rem_euclid(TAU);
+    let j = angle.partition_point(|&a| a <= phi).max(1) - 1;
+    let k = (j + 1) % M;
+    let span = (angle[k] - angle[j]).rem_euclid(TAU).max(1e-12);
+    let t = ((phi - angle[j]).rem_euclid(TAU) / span).clamp(0.0, 1.0);
+    ((j, k), t)
+}
+
+/// Lifts `contour` onto the membrane of `state` (`pitch` plane units a pixel): a node projected
+/// a fraction t of the way out to the outline moves t δ along its ray.
 pub(crate) fn lift(contour: &Contour, pitch: f64, tess: &Tessellation, state: &mut ModelState) {
     let mut model = ModelState {
         translation: DVec3::ZERO,

@@ -575,9 +575,28 @@ impl<'a> Part<'a> {
         Some(area)
     }
 
+    /// The global stage's problem over `fields` and `area`: the samples and their weights are the
+    /// placed outline's, so that the energy is one fixed function of the unknowns.
+    fn problem<'b>(
+        &self,
+        fields: &'b Fields<'b>,
+        area: Option<&'b Area>,
+        hold_eps: bool,
+    ) -> GlobalProblem<'b> {
+        let length = std::f64::consts::PI * (self.placed.r[0] + self.placed.r[1]);
+        let (etas, weights) = samples(&self.placed, length);
+        GlobalProblem {
+            fields,
+            area,
+            etas,
+            weights,
+            bounds: self.bounds,
+            hold_eps,
+        }
+    }
+
     /// The global stage from `o` (see the module docs): the outline at rest, the engine's steps,
-    /// whether it came to rest, and how far (pixels) it moved. The samples and their weights are
-    /// the placed outline's, so that the energy is one fixed function of the unknowns.
+    /// whether it came to rest, and how far (pixels) it moved.
     fn solve_global(
         &self,
         o: Outline,
@@ -585,16 +604,7 @@ impl<'a> Part<'a> {
         hold_eps: bool,
     ) -> (Outline, usize, bool, f64) {
         let fields = self.fields();
-        let length = std::f64::consts::PI * (self.placed.r[0] + self.placed.r[1]);
-        let (etas, weights) = samples(&self.placed, length);
-        let problem = GlobalProblem {
-            fields: &fields,
-            area,
-            etas,
-            weights,
-            bounds: self.bounds,
-            hold_eps,
-        };
+        let problem = self.problem(&fields, area, hold_eps);
         let fit = solve_em(&problem, &o, 0.0, false, &engine_options());
         let moved = problem
             .etas

@@ -117,15 +117,7 @@ fn the_global_gradient_is_the_central_difference() {
     let part = part_on(&pot, edges.as_ref());
     let area = part.area(&[]);
     let fields = part.fields();
-    let (etas, weights) = samples(&part.placed, 100.0);
-    let problem = GlobalProblem {
-        fields: &fields,
-        area: area.as_ref(),
-        etas,
-        weights,
-        bounds: part.bounds,
-        hold_eps: false,
-    };
+    let problem = part.problem(&fields, area.as_ref(), false);
     // Between the placement and the truth, where every residual has a slope.
     let o = Outline {
         c: truth.c + DVec2::new(2.3, -1.7),
@@ -159,20 +151,11 @@ fn a_solved_part_lowers_its_energy_stays_finite_and_comes_to_rest_on_its_truth()
     let (pot, truth) = blob();
     let edges = evidence::edge_distance(&pot);
     let tess = Tessellation::new(15);
-    let placed = placed_off(&truth);
-    let start = placed.state(&pot, 13.0 * pot.pitch(), 1.0, 0.0, &tess);
+    let start = placed_off(&truth).state(&pot, 13.0 * pot.pitch(), 1.0, 0.0, &tess);
     let part = Part::new(&pot, edges.as_ref(), &start);
     let area = part.area(&[]);
     let fields = part.fields();
-    let (etas, weights) = samples(&part.placed, 100.0);
-    let problem = GlobalProblem {
-        fields: &fields,
-        area: area.as_ref(),
-        etas,
-        weights,
-        bounds: part.bounds,
-        hold_eps: false,
-    };
+    let problem = part.problem(&fields, area.as_ref(), false);
     let cost = |o: &Outline| {
         problem
             .evaluate(o, &[])
