@@ -149,8 +149,9 @@ def fit_parts(
     """Fits a whole object: the points split into parts as ``dsq fit --parts`` splits a cloud,
     ``"auto"`` (at most ``max_parts``, default 12) or a count; ``options`` are ``fit``'s keywords."""
 
-def load_points(path: str | PathLike[str]) -> npt.NDArray[np.float64]:
-    """The points of an OBJ (its vertices) or PLY file as an (N, 3) array."""
+def load_points(path: str | PathLike[str], mesh_samples: int = 10000) -> npt.NDArray[np.float64]:
+    """The points of an OBJ or PLY file as an (N, 3) array: its vertices, or, when the file has
+    faces, ``mesh_samples`` points spread uniformly by area over its surface."""
 
 def fit_image(
     image: npt.ArrayLike,

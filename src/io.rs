@@ -1,7 +1,9 @@
 //! Reading point clouds and writing fitted models.
 //!
-//! * [`load_points`]: an OBJ file (its vertices are the points, faces ignored; parsed by `tobj`) or
-//!   a PLY file (ascii or binary, `x y z` vertex properties; parsed by `ply-rs-bw`).
+//! * [`load_points`]: an OBJ file (vertices parsed by `tobj`) or a PLY file (ascii or binary,
+//!   `x y z` vertex properties; parsed by `ply-rs-bw`). A file with faces is a mesh, read as
+//!   [`MESH_SAMPLES`] points spread uniformly by area over its surface ([`sample_surface`]); a
+//!   file without is a point cloud, read as its vertices.
 //! * [`write_obj`]: a closed triangle mesh.
 //!
 //! Every error names the file and says what is wrong, with the line where there is one.
@@ -11,6 +13,9 @@ use crate::model::fem::Tessellation;
 use glam::DVec3;
 use std::fmt;
 use std::path::{Path, PathBuf};
+
+mod surface;
+pub use surface::{MAX_MESH_SAMPLES, MESH_SAMPLES, sample_surface};
 
 /// A file that could not be read as points, or written.
 #[derive(Debug, Clone, PartialEq)]
@@ -44,20 +49,42 @@ fn err(path: &Path, message: impl Into<String>) -> IoError {
     }
 }
 
-/// Reads a point cloud from an `.obj` or `.ply` file (by extension, case-insensitive).
-/// Fails on a missing file, a directory, an unreadable or empty file, text that is not numbers,
-/// and NaN or infinite coordinates.
+/// Reads a point cloud from an `.obj` or `.ply` file (by extension, case-insensitive): its
+/// vertices, or, when it has faces, [`MESH_SAMPLES`] points spread by area over them
+/// ([`load_points_sampled`] takes another count). Fails on a missing file, a directory, an
+/// unreadable or empty file, text that is not numbers, NaN or infinite coordinates, a face
+/// whose indices are not the file's vertices, and faces without area.
 pub fn load_points(path: &Path) -> Result<Vec<DVec3>, IoError> {
+    load_points_sampled(path, MESH_SAMPLES)
+}
+
+/// [`load_points`], a mesh read as `samples` points (1 to [`MAX_MESH_SAMPLES`]).
+pub fn load_points_sampled(path: &Path, samples: usize) -> Result<Vec<DVec3>, IoError> {
     if path.is_dir() {
         return Err(err(path, "is a directory, not a point file"));
     }
     let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
-    decode_points(path, &bytes)
+    decode_points_sampled(path, &bytes, samples)
 }
 
 /// Parses the bytes of an `.obj` or `.ply` point file (the format by `path`'s extension, which
 /// also names the source in errors); see [`load_points`].
 pub fn decode_points(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
+    decode_points_sampled(path, bytes, MESH_SAMPLES)
+}
+
+/// [`decode_points`], a mesh read as `samples` points (1 to [`MAX_MESH_SAMPLES`]).
+pub fn decode_points_sampled(
+    path: &Path,
+    bytes: &[u8],
+    samples: usize,
+) -> Result<Vec<DVec3>, IoError> {
+    if !(1..=MAX_MESH_SAMPLES).contains(&samples) {
+        return Err(err(
+            path,
+            format!("mesh samples = {samples} is out of range [1, {MAX_MESH_SAMPLES}]"),
+        ));
+    }
     if bytes.iter().all(|b| b.is_ascii_whitespace()) {
         return Err(err(path, "the file is empty"));
     }
@@ -66,7 +93,7 @@ pub fn decode_points(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
         .and_then(|e| e.to_str())
         .unwrap_or("")
         .to_ascii_lowercase();
-    let points = match ext.as_str() {
+    let (points, triangles) = match ext.as_str() {
         "obj" => load_obj(path, bytes)?,
         "ply" => load_ply(path, bytes)?,
         _ => {
@@ -79,12 +106,20 @@ pub fn decode_points(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
     if points.is_empty() {
         return Err(err(path, "contains no points"));
     }
-    Ok(points)
+    if triangles.is_empty() {
+        return Ok(points);
+    }
+    sample_surface(&points, &triangles, samples)
+        .ok_or_else(|| err(path, format!("its {} faces have no area", triangles.len())))
 }
 
-/// Parses OBJ vertices with tobj. tobj only returns vertices that elements reference, so every
-/// `v` line is followed by a one-vertex element `l -1` that references it; faces are ignored.
-fn load_obj(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
+/// A file's vertices and its faces' triangles (none for a point cloud).
+type Parsed = (Vec<DVec3>, Vec<[u32; 3]>);
+
+/// Parses OBJ vertices with tobj, and faces ([`surface`]). tobj only returns vertices that
+/// elements reference, so every `v` line is followed by a one-vertex element `l -1` that
+/// references it; faces are left out of what tobj reads.
+fn load_obj(path: &Path, bytes: &[u8]) -> Result<Parsed, IoError> {
     let text =
         std::str::from_utf8(bytes).map_err(|e| err(path, format!("not UTF-8 text ({e})")))?;
     let mut augmented = String::with_capacity(text.len() * 2);
@@ -152,7 +187,8 @@ fn load_obj(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
             ),
         ));
     }
-    Ok(points)
+    let triangles = surface::obj_faces(path, text, points.len())?;
+    Ok((points, triangles))
 }
 
 /// The PLY parser's error in one short line: its first sentence ("Line 9: Couldn't read element
@@ -226,7 +262,7 @@ impl ply_rs_bw::ply::PropertyAccess for PlySkipped {
     }
 }
 
-fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
+fn load_ply(path: &Path, bytes: &[u8]) -> Result<Parsed, IoError> {
     use ply_rs_bw::parser::{Parser, Reader};
     let bad = |e: ply_rs_bw::parser::ParseError| err(path, ply_message(&e.to_string()));
     let mut reader = Reader::new(std::io::Cursor::new(bytes));
@@ -234,8 +270,9 @@ fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
         .read_header(&mut reader)
         .map_err(bad)?;
     let mut vertices = None;
-    // Elements are read in the header's order; the vertices are usually first, and nothing after
-    // them is needed.
+    let mut faces = Vec::new();
+    // Elements are read in the header's order; the vertices and the faces are usually first,
+    // and nothing after them is needed.
     for def in header.elements.values() {
         if def.name == "vertex" {
             let parser = Parser::<PlyVertex>::new();
@@ -244,11 +281,18 @@ fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
                     .read_payload_for_element(&mut reader, def, &header)
                     .map_err(bad)?,
             );
+        } else if def.name == "face" {
+            faces = Parser::<surface::PlyFace>::new()
+                .read_payload_for_element(&mut reader, def, &header)
+                .map_err(bad)?;
+        } else {
+            Parser::<PlySkipped>::new()
+                .read_payload_for_element(&mut reader, def, &header)
+                .map_err(bad)?;
+        }
+        if vertices.is_some() && (!faces.is_empty() || !header.elements.contains_key("face")) {
             break;
         }
-        Parser::<PlySkipped>::new()
-            .read_payload_for_element(&mut reader, def, &header)
-            .map_err(bad)?;
     }
     let Some(vertices) = vertices else {
         return Err(err(path, "has no `vertex` element"));
@@ -273,7 +317,8 @@ fn load_ply(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, IoError> {
         }
         points.push(p);
     }
-    Ok(points)
+    let triangles = surface::ply_faces(path, &faces, points.len())?;
+    Ok((points, triangles))
 }
 
 /// A decoded image as row-major luminance in [0, 1] (row 0 at the top): width, height, values.
@@ -491,7 +536,14 @@ mod tests {
         let text = std::fs::read_to_string(&path).unwrap();
         let n = tess.node_count();
         assert_eq!(text.lines().filter(|l| l.starts_with("o part_")).count(), 2);
-        assert_eq!(load_points(&path).unwrap().len(), 2 * n);
+        assert_eq!(text.lines().filter(|l| l.starts_with("v ")).count(), 2 * n);
+        // Read back as a surface: on the two coarse unit spheres, half on each.
+        let back = load_points(&path).unwrap();
+        assert!(back.iter().all(|p| {
+            let r = p.length().min(p.distance(DVec3::X * 3.0));
+            (0.5..=1.0 + 1e-9).contains(&r)
+        }));
+        assert_eq!(back.iter().filter(|p| p.x < 1.5).count(), MESH_SAMPLES / 2);
         // The second object's faces index its own vertices, after the first's.
         let faces: Vec<Vec<usize>> = text
             .lines()
@@ -514,8 +566,8 @@ mod tests {
     }
 
     #[test]
-    fn obj_vertices_are_points_and_faces_are_ignored() {
-        let p = temp("a.obj", b"# c\nv 1 2 3\nv 4 5 6\nv 7 8 9.5\nf 1 2 3\n");
+    fn obj_vertices_are_points_and_a_mesh_is_its_surface() {
+        let p = temp("a.obj", b"# c\nv 1 2 3\nv 4 5 6\nv 7 8 9.5\n");
         let pts = load_points(&p).unwrap();
         assert_eq!(
             pts,
@@ -524,6 +576,45 @@ mod tests {
                 DVec3::new(4.0, 5.0, 6.0),
                 DVec3::new(7.0, 8.0, 9.5)
             ]
+        );
+        // With a face, the points lie on it, spread over it.
+        let p = temp("f.obj", b"v 0 0 0\nv 2 0 0\nv 0 2 0\nf 1 2 3\n");
+        let pts = load_points_sampled(&p, 500).unwrap();
+        assert_eq!(pts.len(), 500);
+        assert!(
+            pts.iter()
+                .all(|q| q.z == 0.0 && q.x >= 0.0 && q.y >= 0.0 && q.x + q.y <= 2.0 + 1e-12)
+        );
+        let near_corner = pts.iter().filter(|q| q.x + q.y < 1.0).count();
+        assert!(
+            (near_corner as i64 - 125).abs() < 10,
+            "{near_corner} of 500 on a quarter"
+        );
+        assert_eq!(load_points(&p).unwrap().len(), MESH_SAMPLES);
+        // Bad faces and counts are refused in one line naming the file.
+        let p = temp("g.obj", b"v 0 0 0\nv 2 0 0\nv 0 2 0\nf 1 2 4\n");
+        let e = load_points(&p).unwrap_err().to_string();
+        assert!(e.contains("g.obj: line 4: expected `f i j k`"), "{e}");
+        let p = temp("h.obj", b"v 0 0 0\nv 2 0 0\nv 4 0 0\nf 1 2 3\n");
+        let e = load_points(&p).unwrap_err().to_string();
+        assert!(e.ends_with("h.obj: its 1 faces have no area"), "{e}");
+        let e = load_points_sampled(&p, 0).unwrap_err().to_string();
+        assert!(e.contains("mesh samples = 0 is out of range"), "{e}");
+    }
+
+    #[test]
+    fn ply_faces_make_a_mesh_read_as_its_surface() {
+        let text = b"ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n";
+        let p = temp("q.ply", text);
+        let pts = load_points_sampled(&p, 100).unwrap();
+        assert_eq!(pts.len(), 100);
+        assert!(pts.iter().all(|q| q.z == 0.0 && (0.0..=1.0).contains(&q.x)));
+        let bad = String::from_utf8_lossy(text).replace("4 0 1 2 3", "3 0 1 7");
+        let p = temp("r.ply", bad.as_bytes());
+        let e = load_points(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("r.ply: face 1: expected a `vertex_indices` list"),
+            "{e}"
         );
     }
 
@@ -572,8 +663,8 @@ mod tests {
 
     #[test]
     fn ply_vertices_are_read_past_other_elements_and_properties() {
-        // A face element before the vertices, and normals and colours beside x, y, z.
-        let text = "ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\n\
+        // An edge element before the vertices, and normals and colours beside x, y, z.
+        let text = "ply\nformat ascii 1.0\nelement edge 1\nproperty list uchar int vertex_indices\n\
             element vertex 2\nproperty float nx\nproperty double x\nproperty float y\n\
             property uchar red\nproperty int z\nend_header\n3 0 1 0\n0.5 1.25 2 255 3\n0 -1 0.5 7 -2\n";
         let points = load_points(&temp("mixed.ply", text.as_bytes())).unwrap();

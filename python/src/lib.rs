@@ -5,7 +5,7 @@
 
 mod options;
 
-use bevy_deformable_sq::io::load_points as read_points;
+use bevy_deformable_sq::io::{MESH_SAMPLES, load_points_sampled};
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{FitReport, FitSummary, fit as fit_cloud};
@@ -365,10 +365,18 @@ fn fit_parts(
     Ok(PartsResult { whole })
 }
 
-/// The points of an OBJ (its vertices) or PLY file, as an (N, 3) float64 array.
+/// The points of an OBJ or PLY file, as an (N, 3) float64 array: its vertices, or, when it has
+/// faces, `mesh_samples` points spread uniformly by area over its surface.
 #[pyfunction]
-fn load_points<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyArray2<f64>>> {
-    let points = py.detach(|| read_points(&path)).map_err(value_error)?;
+#[pyo3(signature = (path, mesh_samples = MESH_SAMPLES))]
+fn load_points<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    mesh_samples: usize,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let points = py
+        .detach(|| load_points_sampled(&path, mesh_samples))
+        .map_err(value_error)?;
     let flat: Vec<f64> = points.iter().flat_map(|p| p.to_array()).collect();
     Ok(Array2::from_shape_vec((points.len(), 3), flat)
         .expect("3 coordinates a point")

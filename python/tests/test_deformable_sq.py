@@ -141,6 +141,19 @@ def test_bad_input_raises_value_error_with_dsqs_message(tmp_path):
         d.load_points(tmp_path / "broken.ply")
 
 
+def test_a_mesh_is_read_as_its_surface(tmp_path):
+    obj = tmp_path / "tri.obj"
+    obj.write_text("v 0 0 0\nv 2 0 0\nv 0 2 0\nf 1 2 3\n")
+    pts = d.load_points(obj, mesh_samples=500)
+    assert pts.shape == (500, 3)
+    assert np.all(pts[:, 2] == 0) and np.all(pts[:, 0] + pts[:, 1] <= 2 + 1e-12)
+    # Uniform by area: a quarter of the triangle holds a quarter of the points.
+    assert abs(np.sum(pts[:, 0] + pts[:, 1] < 1) - 125) < 10
+    assert d.load_points(obj).shape == (10000, 3)
+    with pytest.raises(ValueError, match="mesh samples = 0 is out of range"):
+        d.load_points(obj, mesh_samples=0)
+
+
 def test_a_fit_releases_the_gil():
     pts = superquadric_cloud((0.5, 0.8, 1.4), 0.5, 1.0, 20000, 0.002, 4)
     done = threading.Event()

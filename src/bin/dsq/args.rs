@@ -3,6 +3,7 @@
 //! Where options overlap, the order is fixed, whatever the order on the command line: a
 //! `--paper` experiment's settings first, then `--robust`, then every option given by itself.
 
+use bevy_deformable_sq::io::{MAX_MESH_SAMPLES, MESH_SAMPLES};
 use bevy_deformable_sq::model::fit::{
     CloudOptions, FitOptions, NoiseStiffness, Solver, Stiffness, k_for_nodes,
 };
@@ -60,10 +61,15 @@ instead; --solver dynamics runs the paper's explicit dynamics. Progress goes to 
 exits with code 2 and a one-line message."
 )]
 pub struct FitArgs {
-    /// The point cloud: an OBJ (its vertices are the points) or PLY file. Give several to fit
-    /// them side by side over every core: a JSON line per file, in the order given.
+    /// The point cloud: an OBJ or PLY file, its vertices the points; a file with faces is a
+    /// mesh, read as points spread uniformly by area over its surface (see --mesh-samples).
+    /// Give several to fit them side by side over every core: a JSON line per file, in the
+    /// order given.
     #[arg(value_name = "POINTS")]
     pub points: Vec<PathBuf>,
+    /// How many points a mesh's surface is read as (default 10000; 1 to 10⁸).
+    #[arg(long, value_name = "N")]
+    pub mesh_samples: Option<usize>,
     /// Fit the parts of an image (PNG or JPEG) instead.
     #[arg(long, value_name = "IMAGE")]
     pub image: Option<PathBuf>,
@@ -333,6 +339,8 @@ pub struct Args {
     pub max_steps_override: Option<u32>,
     /// `--parts` on a cloud: how many parts to split it into (`None`: one).
     pub cloud_parts: Option<PartCount>,
+    /// `--mesh-samples`: the points a mesh file is read as.
+    pub mesh_samples: usize,
 }
 
 /// A paper experiment's settings: the point fit's options and points, or the image's.
@@ -400,6 +408,7 @@ impl FitArgs {
             out_scene: self.out_scene,
             max_steps_override: self.max_steps,
             cloud_parts,
+            mesh_samples: self.mesh_samples.unwrap_or(MESH_SAMPLES),
         };
         Ok((args, base.points.map(|(_, pts)| pts)))
     }
@@ -524,6 +533,16 @@ impl FitArgs {
     fn check_places(&self, source: &Source, options: &FitOptions) -> Result<(), String> {
         let is_file = matches!(source, Source::File(_) | Source::Files(_));
         let refused = |why: &str| Err(why.to_string());
+        if let Some(n) = self.mesh_samples {
+            if !is_file {
+                return refused("--mesh-samples acts on POINTS files");
+            }
+            if !(1..=MAX_MESH_SAMPLES).contains(&n) {
+                return Err(format!(
+                    "mesh-samples = {n} is out of range [1, {MAX_MESH_SAMPLES}]"
+                ));
+            }
+        }
         if let Source::Files(_) = source {
             if self.out_mesh.is_some() || self.out_params.is_some() {
                 return refused(

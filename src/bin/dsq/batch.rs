@@ -5,7 +5,7 @@
 
 use crate::args::Args;
 use crate::fit::{fit_points, write_params};
-use bevy_deformable_sq::io::{load_points, write_model_obj};
+use bevy_deformable_sq::io::{load_points_sampled, write_model_obj};
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use std::collections::{BTreeMap, HashMap};
@@ -81,7 +81,7 @@ pub fn run(files: &[PathBuf], args: &Args) -> Result<(), String> {
 
 /// Reads and fits one file, writing `out`.obj and `out`.json when given.
 fn fit_file(file: &Path, out: Option<&Path>, args: &Args) -> Outcome {
-    let points = load_points(file).map_err(|e| e.to_string())?;
+    let points = load_points_sampled(file, args.mesh_samples).map_err(|e| e.to_string())?;
     let name = file.display().to_string();
     let (line, report) = fit_points(&points, &name, args, false)?;
     if let Some(out) = out {

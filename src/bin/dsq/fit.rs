@@ -3,7 +3,8 @@
 
 use crate::args::{Args, Source};
 use bevy_deformable_sq::io::{
-    load_image, load_points, write_model_obj, write_models_obj, write_obj, write_overlay_png,
+    load_image, load_points_sampled, write_model_obj, write_models_obj, write_obj,
+    write_overlay_png,
 };
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
@@ -42,7 +43,7 @@ pub fn run(args: Args, paper_points: Option<Vec<DVec3>>) -> Result<(), String> {
         (Source::Scene(path), _) => return run_scene_file(path, &args),
         (Source::Files(files), _) => return crate::batch::run(files, &args),
         (Source::File(path), _) => (
-            load_points(path).map_err(|e| e.to_string())?,
+            load_points_sampled(path, args.mesh_samples).map_err(|e| e.to_string())?,
             path.display().to_string(),
         ),
         (Source::Paper(name), Some(pts)) => (pts, format!("paper:{name}")),
