@@ -71,6 +71,51 @@ pub fn fit(
     fit_watched(points, opts, progress, |_, _| {})
 }
 
+/// A pure superquadric fitted to `points` by one lean search (from `opts`' starts, without
+/// similarity switches or the placed search; [`crate::model::lm::solve_lean`]), in the data's
+/// frame and units: a quick fit for a caller that weighs many candidate pieces of a cloud
+/// ([`crate::model::parts`]). Its tapering, bending and local DOFs are not fitted. Errors as
+/// [`fit`]'s.
+pub fn fit_lean(
+    points: &[DVec3],
+    opts: &FitOptions,
+) -> Result<crate::model::init::InitialPose, FitError> {
+    let ctx = Context::new(points, opts)?;
+    let starts = hypotheses::starts(&ctx);
+    let unit = global::solve_lean_global(&ctx, &starts)?;
+    let mut pose = ctx.norm.pose_from_unit(&unit);
+    pose.shape = pose.shape.normalized();
+    Ok(pose)
+}
+
+/// A fit of `points` whose superquadric is `pose` (data frame), held as given: with local DOFs
+/// (the solved plan's), its membrane brought to rest on it; without, the report of `pose`
+/// itself, its residuals measured on every point. What a caller uses that chose the
+/// superquadric by a search of its own (a whole object's parts, [`crate::model::parts`]).
+/// Errors as [`fit`]'s.
+pub fn fit_on(
+    points: &[DVec3],
+    pose: &crate::model::init::InitialPose,
+    opts: &FitOptions,
+) -> Result<FitReport, FitError> {
+    let ctx = Context::new(points, opts)?;
+    let unit = ctx.norm.pose_to_unit(pose);
+    let global = global::held_global(&ctx, &unit);
+    let outcome = if has_joint_stage(&ctx.opts) {
+        let mut progress = |_: &FitProgress| {};
+        let mut watch = |_: &Tessellation, _: &ModelState| {};
+        let mut sink = Sink {
+            progress: &mut progress,
+            watch: &mut watch,
+        };
+        // No starts: no ellipsoid carrier either, the membrane rests on the superquadric given.
+        membrane::solve_membrane(&ctx, &[], global, &mut sink)?
+    } else {
+        global.into()
+    };
+    Ok(FitReport::new(&ctx, outcome))
+}
+
 /// [`fit`], also handing `watch` the model as the plan has it (data frame, on its tessellation)
 /// when the superquadric has been chosen and before the membrane is brought to rest: what a live
 /// app shows while a fit runs. The report's state is the last word.

@@ -147,6 +147,39 @@ pub(super) fn solve_global(ctx: &Context, starts: &[InitialPose]) -> Result<Glob
     Ok(global)
 }
 
+/// The global stage held at `pose` (unit frame): the superquadric as given, with the settings a
+/// membrane fitted on it reads.
+pub(super) fn held_global(ctx: &Context, pose: &InitialPose) -> Global {
+    let (lm, sigma2) = lm_options(ctx, pose);
+    let tess = Tessellation::new(ctx.opts.k);
+    Global {
+        state: ModelState::new(&tess, pose.translation, pose.rotation, pose.shape),
+        tess,
+        start: *pose,
+        sigma2,
+        lm,
+        steps: 0,
+        global_steps: 0,
+        converged: true,
+        cost: 0.0,
+    }
+}
+
+/// A pure superquadric fitted to `ctx`'s points from `starts` (unit frame) by the lean search
+/// ([`crate::model::lm::solve_lean`]): the superquadric alone, without its deformation.
+pub(super) fn solve_lean_global(
+    ctx: &Context,
+    starts: &[InitialPose],
+) -> Result<InitialPose, FitError> {
+    let first = starts
+        .first()
+        .ok_or_else(|| FitError::BadOption("no initial state to start from".into()))?;
+    let (lm, sigma2) = lm_options(ctx, first);
+    crate::model::lm::solve_lean(&ctx.unit, starts, sigma2, &lm)
+        .map(|s| s.fit.pose)
+        .ok_or_else(|| FitError::BadOption("no initial state to start from".into()))
+}
+
 /// The tapering and bending of a solved fit (`free`: taper, bend) from its superquadric `pose`
 /// (unit frame): [`fit_deformed`] from the superquadric with each of its axes as z, undeformed
 /// and as the points' centreline shows ([`seed_deformation`]), side by side on a subsample; the

@@ -398,6 +398,38 @@ pub fn solve(
     })
 }
 
+/// The lean search: the search from the starts alone ([`PROBE_ROUNDS`] EM rounds of the radial
+/// distance from each, the best on to rest), without similarity switches or the placed search,
+/// on [`coarse_sample`]`(all_points)`; then [`FINE_ROUNDS`] rounds of the distance along the
+/// normal (the radial distance is biased on elongated shapes). What a caller that weighs many
+/// candidate fits uses (the pieces a whole object is assembled from, [`crate::model::parts`]);
+/// [`solve`] is the whole search. `None` when no start gives a finite fit.
+pub fn solve_lean(
+    all_points: &[DVec3],
+    starts: &[InitialPose],
+    sigma2: f64,
+    opts: &LmOptions,
+) -> Option<Solution> {
+    let sample = coarse_sample(all_points);
+    let radial = LmOptions {
+        metric: Metric::Radial,
+        ..*opts
+    };
+    let ((fit, _, start), mut iterations) = probe_and_continue(&sample, starts, sigma2, &radial)?;
+    let polish = LmOptions {
+        max_rounds: FINE_ROUNDS,
+        metric: Metric::Normal,
+        ..*opts
+    };
+    let fit = fit_em(&sample, &fit.pose, fit.sigma2, &polish);
+    iterations += fit.iterations;
+    Some(Solution {
+        fit,
+        start,
+        iterations,
+    })
+}
+
 /// The carrier a fit with local DOFs may start its membrane from instead of the fitted
 /// superquadric: an ellipsoid (exponents held at the starts', 1 for moments starts) placed from
 /// each of `starts` with the [`Coverage`] term and then fitted without it, the one nearest the
