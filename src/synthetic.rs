@@ -17,8 +17,10 @@ use crate::model::superquadric::{SuperquadricParams, shape_at};
 use glam::{DQuat, DVec3};
 use std::f64::consts::{FRAC_PI_2, PI};
 
+mod creature;
 mod union;
 
+pub use creature::{Creature, CreaturePart, creature};
 pub use union::{UnionCloud, union_cloud};
 
 /// A small deterministic generator (SplitMix64), so data and tests are the same on every machine.

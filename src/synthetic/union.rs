@@ -136,7 +136,7 @@ fn area(shape: &SuperquadricParams) -> f64 {
 /// The points of `cloud` a viewer looking along −`d` sees: in each cell of a grid across `d`
 /// (sized for about `points` cells covered), the point nearest the viewer, and any within a
 /// cell's width of it in depth.
-fn one_view(cloud: Vec<(DVec3, usize)>, d: DVec3, points: usize) -> Vec<(DVec3, usize)> {
+pub(super) fn one_view(cloud: Vec<(DVec3, usize)>, d: DVec3, points: usize) -> Vec<(DVec3, usize)> {
     use std::collections::HashMap;
     let (e1, e2) = d.any_orthonormal_pair();
     let (lo, hi) = cloud.iter().fold(
