@@ -138,6 +138,13 @@ class PartsResult:
     @property
     def joints(self) -> list[tuple[int, int, tuple[float, float, float]]]:
         """The joints between parts that touch: (part i, part j, where they touch)."""
+    @property
+    def explained(self) -> float:
+        """The fraction of the points within reach of the nearest part (where coding a point as
+        an outlier would be cheaper)."""
+    @property
+    def part_explained(self) -> list[float]:
+        """For each part, the fraction of its points within reach of it."""
     def __len__(self) -> int: ...
 
 def fit_parts(
@@ -147,7 +154,7 @@ def fit_parts(
     **options: Any,
 ) -> PartsResult:
     """Fits a whole object: the points split into parts as ``dsq fit --parts`` splits a cloud,
-    ``"auto"`` (at most ``max_parts``, default 12) or a count; ``options`` are ``fit``'s keywords."""
+    ``"auto"`` (at most ``max_parts``, default 24) or a count; ``options`` are ``fit``'s keywords."""
 
 def load_points(path: str | PathLike[str], mesh_samples: int = 10000) -> npt.NDArray[np.float64]:
     """The points of an OBJ or PLY file as an (N, 3) array: its vertices, or, when the file has

@@ -180,14 +180,23 @@ fn check_points(name: &str, bytes: &[u8]) -> Result<(), TestCaseError> {
 
 #[test]
 fn the_seed_files_decode() {
+    // The binary PLY is a cloud: its four vertices.
+    let points = decode_points(Path::new("t.ply"), &binary_ply()).expect("binary");
+    assert_eq!(points.len(), 4);
+    assert!(points.contains(&DVec3::new(0.0, 0.0, 1.0)));
+    // The other two have faces: their surfaces, sampled, on the tetrahedron's faces.
     for (name, bytes) in [
         ("t.ply", ASCII_PLY.as_bytes().to_vec()),
-        ("t.ply", binary_ply()),
         ("t.obj", OBJ.as_bytes().to_vec()),
     ] {
         let points = decode_points(Path::new(name), &bytes).expect(name);
-        assert_eq!(points.len(), 4, "{name}");
-        assert!(points.contains(&DVec3::new(0.0, 0.0, 1.0)) || name.ends_with("obj"));
+        assert_eq!(points.len(), bevy_deformable_sq::io::MESH_SAMPLES, "{name}");
+        assert!(
+            points
+                .iter()
+                .all(|p| p.min_element() >= 0.0 && p.x + p.y + p.z / 1.5 <= 1.0 + 1e-9),
+            "{name}"
+        );
     }
     let (w, h, lum) = decode_luminance(Path::new("t.png"), &png()).expect("png");
     assert_eq!((w, h, lum.len()), (8, 6, 48));

@@ -331,6 +331,19 @@ impl PartsResult {
             .collect()
     }
 
+    /// The fraction of the points the parts explain: those within the split's reach (where
+    /// coding a point as an outlier would be cheaper) of the nearest part.
+    #[getter]
+    fn explained(&self) -> f64 {
+        self.whole.explained
+    }
+
+    /// For each part, the fraction of its points (those nearest it) within reach of it.
+    #[getter]
+    fn part_explained(&self) -> Vec<f64> {
+        self.whole.part_explained.clone()
+    }
+
     fn __len__(&self) -> usize {
         self.whole.fits.len()
     }

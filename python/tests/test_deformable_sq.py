@@ -299,11 +299,15 @@ def test_fit_parts_splits_two_separate_superquadrics_as_dsq_does(tmp_path):
     assert owner[0] != owner[600]
     for part in whole.parts:
         assert part.residuals["mean"] < 0.01 * 4.0
+    # Two clean superquadrics: every point explained, by each part and by the whole.
+    assert whole.explained == 1.0 and whole.part_explained == [1.0, 1.0]
     path = write_ply(tmp_path / "two.ply", points)
     out = tmp_path / "params.json"
     run = dsq(path, "--quiet", "--parts", "auto", "--out-params", out)
     assert run.returncode == 0, run.stderr
     assert [p.to_dict() for p in whole.parts] == json.loads(out.read_text())
+    lines = [json.loads(line) for line in run.stdout.splitlines()]
+    assert [line["explained"] for line in lines] == whole.part_explained + [whole.explained]
     with pytest.raises(ValueError, match="max_parts caps"):
         d.fit_parts(points, parts=2, max_parts=3)
     with pytest.raises(ValueError, match="parts = 0"):

@@ -1,6 +1,10 @@
 //! Several parts fitted to one range cloud (the paper's doll experiment, section VI-A, in 3D):
 //! every data point pulls on the part whose surface lies nearest it.
 //!
+//! [`fit_parts`] with [`PartCount::Auto`] finds the parts by description length ([`split`]:
+//! small patches of the cloud merged while a merge pays, parts added where points are left
+//! unexplained). With [`PartCount::Exact`] it runs [`partition`]:
+//!
 //! The loop alternates two steps until no point changes part: fit every part to its points (each
 //! part a global-only [`fit`], the parts in parallel), then give every point to the part whose
 //! fitted surface is nearest. Then, if the options have local DOFs, each part is fitted once more
@@ -20,11 +24,15 @@ use super::parallel::run_parallel;
 use glam::DVec3;
 
 mod joints;
-mod spectral;
+mod merge;
+mod patches;
 mod split;
 
+use super::lm::spread_sample;
 pub use joints::{PartJoint, joints};
-pub use split::{DEFAULT_MAX_PARTS, PART_PARAMETERS, Scale, TOLERANCE, split};
+pub use split::{
+    DEFAULT_MAX_PARTS, PART_PARAMETERS, PATCHES, Scale, TOLERANCE, WORK_POINTS, split,
+};
 
 /// k-means clusters of `points`: the cluster of each point. Seeds: the point farthest from the
 /// centroid, then repeatedly the point farthest from every seed so far; then `iterations` Lloyd
@@ -124,6 +132,41 @@ pub struct Whole {
     pub joints: Vec<PartJoint>,
     /// The description length's scale (see [`split`]).
     pub scale: Scale,
+    /// The fraction of the points the parts explain: those within [`Scale::reach`] of the
+    /// nearest part's surface.
+    pub explained: f64,
+    /// For each part, the fraction of its points (those nearest it) within [`Scale::reach`] of
+    /// its surface.
+    pub part_explained: Vec<f64>,
+}
+
+impl Whole {
+    /// The whole object of `fits` on `points` at `scale`: every point given to the part whose
+    /// surface is nearest, the parts that touch joined, and what the parts explain.
+    pub fn of(points: &[DVec3], fits: Vec<FitReport>, scale: Scale) -> Self {
+        let (owner, distance) = nearest_surface(points, fits.iter().map(|f| (&f.tess, &f.state)));
+        let reach = scale.reach();
+        let mut within = vec![(0usize, 0usize); fits.len()];
+        for (&j, &d) in owner.iter().zip(&distance) {
+            within[j].1 += 1;
+            if d <= reach {
+                within[j].0 += 1;
+            }
+        }
+        let explained =
+            within.iter().map(|w| w.0).sum::<usize>() as f64 / points.len().max(1) as f64;
+        Self {
+            joints: joints(&fits, scale.tau),
+            part_explained: within
+                .iter()
+                .map(|&(k, n)| if n == 0 { 1.0 } else { k as f64 / n as f64 })
+                .collect(),
+            fits,
+            owner,
+            scale,
+            explained,
+        }
+    }
 }
 
 /// Checks that `n` points can be split into `parts`: at least one part, and [`MIN_POINTS`] points
@@ -181,7 +224,7 @@ pub fn partition(
                 (tess, state)
             })
             .collect();
-        nearest_surface(points, surfaces.iter().map(|(t, s)| (t, s)))
+        nearest_surface(points, surfaces.iter().map(|(t, s)| (t, s))).0
     } else {
         return Err(FitError::BadOption(
             "the parts must all start from the moments of their points or all from explicit poses"
@@ -214,7 +257,7 @@ pub fn partition(
             )));
         }
         fits = fit_each(&members, &global)?;
-        let next = nearest_surface(points, fits.iter().map(|f| (&f.tess, &f.state)));
+        let next = nearest_surface(points, fits.iter().map(|f| (&f.tess, &f.state))).0;
         for (o, f) in global.iter_mut().zip(&fits) {
             o.init = Initialization::Explicit(InitialPose::of(&f.state));
         }
@@ -252,38 +295,42 @@ pub fn fit_parts(points: &[DVec3], count: PartCount, opts: &FitOptions) -> Resul
                 k
             ];
             let p = partition(points, &each, PARTITION_ROUNDS)?;
-            let scale = Scale::of(points);
-            Whole {
-                joints: joints(&p.fits, scale.tau),
-                fits: p.fits,
-                owner: p.owner,
-                scale,
-            }
+            Whole::of(
+                points,
+                p.fits,
+                Scale::of(&spread_sample(points, WORK_POINTS)),
+            )
         }
     };
     if super::fit::has_joint_stage(opts) {
-        let k = whole.fits.len();
-        let members = members_of(points, &whole.owner, k);
-        let joint: Vec<FitOptions> = whole
-            .fits
+        // Each part fitted once more with the local DOFs, from its pure superquadric, to the
+        // points nearest it.
+        let members = members_of(points, &whole.owner, whole.fits.len());
+        let jobs: Vec<(&Vec<DVec3>, FitOptions)> = members
             .iter()
-            .map(|f| FitOptions {
-                init: Initialization::Explicit(InitialPose::of(&f.state)),
-                ..*opts
+            .zip(&whole.fits)
+            .map(|(m, f)| {
+                let init = Initialization::Explicit(InitialPose::of(&f.state));
+                (m, FitOptions { init, ..*opts })
             })
             .collect();
-        whole.fits = fit_each(&members, &joint)?;
-        whole.owner = nearest_surface(points, whole.fits.iter().map(|f| (&f.tess, &f.state)));
-        whole.joints = joints(&whole.fits, whole.scale.tau);
+        let local = run_parallel(
+            &jobs,
+            |(m, o), _| fit(if m.len() >= MIN_POINTS { m } else { points }, o, |_| {}),
+            &mut |_: &()| {},
+        );
+        let fits = local.into_iter().collect::<Result<Vec<_>, _>>()?;
+        whole = Whole::of(points, fits, whole.scale);
     }
     Ok(whole)
 }
 
-/// The index of the surface nearest each point, among `surfaces` (tessellation and state).
+/// The index of the surface nearest each point, among `surfaces` (tessellation and state), and
+/// the point's distance from it.
 fn nearest_surface<'a>(
     points: &[DVec3],
     surfaces: impl Iterator<Item = (&'a Tessellation, &'a ModelState)>,
-) -> Vec<usize> {
+) -> (Vec<usize>, Vec<f64>) {
     let mut best = vec![(f64::INFINITY, 0usize); points.len()];
     let mut x = Vec::new();
     for (j, (tess, state)) in surfaces.enumerate() {
@@ -294,7 +341,7 @@ fn nearest_surface<'a>(
             }
         }
     }
-    best.into_iter().map(|(_, j)| j).collect()
+    best.into_iter().map(|(d, j)| (j, d)).unzip()
 }
 
 /// The points of each of `k` parts.

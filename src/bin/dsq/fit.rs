@@ -123,6 +123,7 @@ fn run_parts(points: &[DVec3], name: &str, count: PartCount, args: &Args) -> Res
         let n = whole.owner.iter().filter(|&&o| o == j).count();
         let mut line = range_summary(name, part, n, wall, "core");
         line["part"] = serde_json::json!(j);
+        line["explained"] = serde_json::json!(whole.part_explained[j]);
         crate::emit(&line);
         summaries.push(part.summary());
     }
@@ -148,6 +149,7 @@ fn run_parts(points: &[DVec3], name: &str, count: PartCount, args: &Args) -> Res
         "parts": whole.fits.len(),
         "joints": joints,
         "points": points.len(),
+        "explained": whole.explained,
         "wall_ms": (wall.as_secs_f64() * 1e4).round() / 10.0,
     }));
     Ok(())

@@ -400,8 +400,8 @@ pub fn solve(
 
 /// The lean search: the search from the starts alone ([`PROBE_ROUNDS`] EM rounds of the radial
 /// distance from each, the best on to rest), without similarity switches or the placed search,
-/// on [`coarse_sample`]`(all_points)`; then [`FINE_ROUNDS`] rounds of the distance along the
-/// normal (the radial distance is biased on elongated shapes). What a caller that weighs many
+/// on [`coarse_sample`]`(all_points)`; then on to rest on the distance along the normal (the
+/// radial distance is biased on elongated shapes). What a caller that weighs many
 /// candidate fits uses (the pieces a whole object is assembled from, [`crate::model::parts`]);
 /// [`solve`] is the whole search. `None` when no start gives a finite fit.
 pub fn solve_lean(
@@ -417,7 +417,6 @@ pub fn solve_lean(
     };
     let ((fit, _, start), mut iterations) = probe_and_continue(&sample, starts, sigma2, &radial)?;
     let polish = LmOptions {
-        max_rounds: FINE_ROUNDS,
         metric: Metric::Normal,
         ..*opts
     };
