@@ -78,10 +78,35 @@ fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
     let (dir, mut app, camera, root) = chain_app("scan");
     assert_eq!(joint_count(&mut app), 3);
     // The user has moved the view since the scene placed the camera.
-    let view = Transform::from_xyz(-4.0, 3.0, 2.0).looking_at(Vec3::ZERO, Vec3::Y);
-    *app.world_mut().get_mut::<Transform>(camera).unwrap() = view;
+    let user_view = Transform::from_xyz(-4.0, 3.0, 2.0).looking_at(Vec3::ZERO, Vec3::Y);
+    *app.world_mut().get_mut::<Transform>(camera).unwrap() = user_view;
 
-    let cow = shipped_data("cow_scan.obj");
+    // One superquadric's surface, seen from one side: one part. (A whole object's scan splits
+    // into several: the last test.)
+    let q = bevy_deformable_sq::model::superquadric::SuperquadricParams {
+        a: 1.0,
+        a1: 1.0,
+        a2: 0.7,
+        a3: 0.5,
+        e1: 0.8,
+        e2: 1.0,
+    };
+    let all = bevy_deformable_sq::synthetic::superquadric_cloud(
+        &q,
+        DVec3::ZERO,
+        glam::DQuat::IDENTITY,
+        3000,
+        0.002,
+        7,
+    );
+    let view = DVec3::new(0.3, 0.4, 0.866).normalize();
+    let mut text = String::new();
+    for p in all.iter().filter(|p| p.dot(view) > 0.0) {
+        text.push_str(&format!("v {} {} {}\n", p.x, p.y, p.z));
+    }
+    let cow = std::env::temp_dir().join(format!("bdsq-blob-{}/blob_scan.obj", std::process::id()));
+    std::fs::create_dir_all(cow.parent().unwrap()).unwrap();
+    std::fs::write(&cow, text).unwrap();
     let added = add_file(app.world_mut(), root, &cow, PLACE, &dir).unwrap();
     let AddedFile::Part {
         name,
@@ -91,9 +116,9 @@ fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
     else {
         panic!("a scan made {added:?}");
     };
-    assert_eq!(name, "cow_scan");
+    assert_eq!(name, "blob_scan");
     // The scan lies outside the assets, so it was imported there (a scene names assets only).
-    let imported = dir.join("imported/cow_scan.obj");
+    let imported = dir.join("imported/blob_scan.obj");
     assert_eq!(
         std::fs::read(&imported).unwrap(),
         std::fs::read(&cow).unwrap()
@@ -112,7 +137,7 @@ fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
         3,
         "the joints were made anew, not doubled"
     );
-    assert_eq!(*app.world().get::<Transform>(camera).unwrap(), view);
+    assert_eq!(*app.world().get::<Transform>(camera).unwrap(), user_view);
 
     // Placed from the points' moments: centroid at `at`, RMS radius `radius`.
     let e = named(&mut app, &name).expect("the scan's part");
@@ -183,6 +208,7 @@ fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
     assert_eq!(*w2.get::<LocalDofs>(e2).unwrap(), local);
     assert_eq!(w2.get::<RangeData>(e2).unwrap().forces.points(), &pts[..]);
     let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(cow.parent().unwrap());
 }
 
 #[test]

@@ -61,7 +61,7 @@ pub const DEFAULT_MAX_PARTS: usize = 24;
 /// and every point is given to its nearest part at the end.
 pub const WORK_POINTS: usize = 4096;
 
-/// The patches a cloud is first cut into ([`super::patches`]): several for each part a person
+/// The patches a cloud is first cut into (geodesic Voronoi cells): several for each part a person
 /// would name on the richest objects.
 pub const PATCHES: usize = 64;
 
@@ -301,7 +301,7 @@ fn cost(parts: &[&Part], data: &Data, scale: &Scale) -> f64 {
 
 /// Splits `points` into parts by description length (module docs), each part a pure
 /// superquadric fitted with `opts` (made global-only), and joins the parts that touch
-/// ([`joints`], within τ). Errors: bad points or options, fewer than [`MIN_POINTS`] points, or
+/// ([`joints`](fn@super::joints), within τ). Errors: bad points or options, fewer than [`MIN_POINTS`] points, or
 /// a `max_parts` of 0. A cap above what the points allow ([`MIN_POINTS`] a part) is lowered to
 /// it.
 pub fn split(points: &[DVec3], max_parts: usize, opts: &FitOptions) -> Result<Whole, FitError> {
@@ -375,7 +375,25 @@ pub fn split(points: &[DVec3], max_parts: usize, opts: &FitOptions) -> Result<Wh
     )
     .into_iter()
     .collect::<Result<Vec<FitReport>, FitError>>()?;
-    Ok(Whole::of(points, fits, scale))
+    // A part left with fewer points than a fit needs is dropped, its points to the others: a
+    // scene that shares the cloud among the parts splits it the same way, and each part must
+    // be fittable there.
+    let mut fits = fits;
+    loop {
+        let whole = Whole::of(points, fits, scale);
+        let counts = whole
+            .owner
+            .iter()
+            .fold(vec![0usize; whole.fits.len()], |mut c, &o| {
+                c[o] += 1;
+                c
+            });
+        let Some(few) = (0..counts.len()).find(|&j| counts[j] < MIN_POINTS) else {
+            return Ok(whole);
+        };
+        fits = whole.fits;
+        fits.remove(few);
+    }
 }
 
 /// The part whose surface is nearest each of `points` (by [`normal_distance`]).
@@ -394,22 +412,25 @@ fn nearest_part(points: &[DVec3], poses: &[InitialPose]) -> Vec<usize> {
         .collect()
 }
 
-/// Removes, one at a time, the part whose removal lowers the whole cost the most (its points
-/// then described by the others), while one does: a part hidden inside the others, or one that
-/// exists only to cover a few points, costs more than it saves.
+/// Removes, one at a time, the part that explains least, while one does not pay for itself:
+/// a part is kept only when removing it (its points then described by the others) would raise
+/// the points' cost by more than a part's price. Only the points judge a part here: a part
+/// hidden in the others that hides an unsupported piece of their surface in turn lowers the
+/// surfaces' cost, and would otherwise pay for itself without explaining anything.
 fn prune(parts: &mut Vec<Part>, data: &Data, scale: &Scale) {
     while parts.len() > 1 {
-        let whole = cost(&parts.iter().collect::<Vec<_>>(), data, scale);
-        let without: Vec<f64> = (0..parts.len())
+        let all: Vec<&Part> = parts.iter().collect();
+        let with = cost_of(&all, None, data, scale).0;
+        let rise: Vec<f64> = (0..parts.len())
             .map(|j| {
                 let rest: Vec<&Part> = (0..parts.len())
                     .filter(|&k| k != j)
                     .map(|k| &parts[k])
                     .collect();
-                cost(&rest, data, scale)
+                cost_of(&rest, None, data, scale).0 - with
             })
             .collect();
-        let Some((j, c)) = without
+        let Some((j, r)) = rise
             .iter()
             .copied()
             .enumerate()
@@ -417,7 +438,7 @@ fn prune(parts: &mut Vec<Part>, data: &Data, scale: &Scale) {
         else {
             return;
         };
-        if c >= whole {
+        if r >= scale.part {
             return;
         }
         parts.remove(j);
