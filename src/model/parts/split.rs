@@ -23,9 +23,11 @@
 //! into [`PATCHES`] small connected patches ([`super::patches`]), and touching pieces are merged
 //! two at a time, the cheapest first, while a merge lowers L. A superquadric is convex, so the
 //! merges stop at the concave creases where a person would name a new part: a limb on a body,
-//! a head on a neck, a wheel on an axle. Then a part whose removal lowers L is removed (none
-//! hides inside the others or exists only to cover noise), every point goes to the part whose
-//! surface is nearest, and each part is refitted to its points while that lowers L.
+//! a head on a neck, a wheel on an axle. Then a part is removed while removing it raises the
+//! points' cost by less than a part's price (none hides inside the others or exists only to
+//! cover noise), every point goes to the part whose surface is nearest, each part is refitted
+//! to its points while that lowers L, and a new part is fitted to each connected group of
+//! points left unexplained while that lowers L.
 
 use super::Whole;
 use super::merge::{Assembly, PIECE_K};
