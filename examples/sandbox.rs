@@ -15,7 +15,9 @@ use bevy::picking::pointer::PointerButton;
 use bevy::prelude::*;
 use bevy_deformable_sq::model::image_fit::ellipsoid_from_points;
 use bevy_deformable_sq::model::joint::JointEnd;
-use bevy_deformable_sq::plugin::scene::{AddedFile, FilePlacement, add_file, add_part, save_scene};
+use bevy_deformable_sq::plugin::scene::{
+    AddedFile, AddingFile, FileAdded, FilePlacement, add_file_in_background, add_part, save_scene,
+};
 use bevy_deformable_sq::plugin::world_positions;
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::scene::{Forces, PartDef, PartPlacement};
@@ -89,7 +91,7 @@ fn main() -> AppExit {
         Update,
         (
             keys.before(MouseSpringSystems),
-            drop_files,
+            (drop_files, show_added).chain(),
             (place_part, run_simulation, apply_display).after(MouseSpringSystems),
         ),
     )
@@ -130,10 +132,11 @@ fn save_open_scene(world: &mut World) {
     world.resource_mut::<InspectorState>().message = message;
 }
 
-/// Files dropped on the window join the open scene ([`add_file`]): a scan as a part fitted to
-/// it, in front of what the camera looks at and clear of the other parts; an image as the
-/// backdrop, with a new part's four clicks begun. A file it cannot take says why in the message
-/// line, and the scene stays as it was.
+/// Files dropped on the window join the open scene (`add_file_in_background`): a scan as
+/// parts fitted to it, in front of what the camera looks at and clear of the other parts; an
+/// image as the backdrop, with a new part's four clicks begun. The split into parts runs off the
+/// frame ([`show_added`] says how it goes). A file it cannot take says why in the message line,
+/// and the scene stays as it was.
 fn drop_files(mut drops: MessageReader<FileDragAndDrop>, mut commands: Commands) {
     for drop in drops.read() {
         if let FileDragAndDrop::DroppedFile { path_buf, .. } = drop {
@@ -143,7 +146,7 @@ fn drop_files(mut drops: MessageReader<FileDragAndDrop>, mut commands: Commands)
     }
 }
 
-/// Adds one dropped file to the open scene and says what came of it.
+/// Starts adding one dropped file to the open scene, or says why it cannot.
 fn add_dropped(world: &mut World, file: &Path) {
     let Some(root) = world.resource::<Sandbox>().root else {
         return;
@@ -154,33 +157,58 @@ fn add_dropped(world: &mut World, file: &Path) {
         radius: DROPPED_RADIUS,
         extent: DROPPED_EXTENT,
     };
-    let result = add_file(world, root, file, placement, &screenshot::assets_dir().0);
-    let message = match result {
-        Ok(AddedFile::Part {
-            name,
-            points,
-            parts,
-        }) => {
-            world.resource_mut::<InspectorState>().select_name = Some(name.clone());
-            if parts == 1 {
-                format!("added {name}: {points} points, placed from their moments and fitted")
-            } else {
-                format!("added {name}: {points} points split into {parts} jointed parts, fitted")
+    let assets = screenshot::assets_dir().0;
+    if let Err(e) = add_file_in_background(world, root, file, placement, &assets) {
+        world.resource_mut::<InspectorState>().message = format!("not added: {e}");
+    }
+}
+
+/// The message line while dropped files are split into parts (their names and the seconds so
+/// far), and what came of each when it has joined the scene.
+fn show_added(
+    adding: Query<&AddingFile>,
+    mut added: MessageReader<FileAdded>,
+    mut sandbox: ResMut<Sandbox>,
+    mut inspector: ResMut<InspectorState>,
+) {
+    for FileAdded { result, .. } in added.read() {
+        inspector.message = match result {
+            Ok(AddedFile::Part {
+                name,
+                points,
+                parts,
+            }) => {
+                inspector.select_name = Some(name.clone());
+                if *parts == 1 {
+                    format!("added {name}: {points} points, placed from their moments and fitted")
+                } else {
+                    format!(
+                        "added {name}: {points} points split into {parts} jointed parts, fitted"
+                    )
+                }
             }
-        }
-        Ok(AddedFile::Image { name, size }) => {
-            let mut sandbox = world.resource_mut::<Sandbox>();
-            sandbox.show_images = true;
-            let mut inspector = InspectorState::default();
-            begin(&mut sandbox, &mut inspector, false);
-            format!(
-                "added {name} ({} x {} px) as the backdrop. {}",
-                size.0, size.1, inspector.message
-            )
-        }
-        Err(e) => format!("not added: {e}"),
-    };
-    world.resource_mut::<InspectorState>().message = message;
+            Ok(AddedFile::Image { name, size }) => {
+                sandbox.show_images = true;
+                let mut how = InspectorState::default();
+                begin(&mut sandbox, &mut how, false);
+                format!(
+                    "added {name} ({} x {} px) as the backdrop. {}",
+                    size.0, size.1, how.message
+                )
+            }
+            Err(e) => format!("not added: {e}"),
+        };
+    }
+    let running: Vec<String> = adding
+        .iter()
+        .map(|a| {
+            let name = a.file().file_name().unwrap_or_default().display();
+            format!("{name} ({:.1} s)", a.elapsed().as_secs_f64())
+        })
+        .collect();
+    if !running.is_empty() {
+        inspector.message = format!("splitting into parts: {}", running.join(", "));
+    }
 }
 
 /// The RMS radius a dropped scan is scaled to. The default scene's models have RMS radii of

@@ -300,9 +300,9 @@ fn the_sandbox_renders_its_models() {
     let _ = std::fs::remove_file(&out);
 }
 
-/// A scan dropped on the window (through the windowing system's drop message) becomes a part that
-/// is fitted to it with its local DOFs and drawn in its colour; a file that cannot be read, dropped
-/// first, says why in the message line and adds nothing.
+/// A scan dropped on the window (through the windowing system's drop message) is split into
+/// jointed parts off the frame, each fitted with its local DOFs and drawn in its colour; a file
+/// that cannot be read, dropped first, says why in the message line and adds nothing.
 #[test]
 fn a_scan_dropped_on_the_sandbox_is_fitted_and_a_bad_file_changes_nothing() {
     if !renderer_available() {
@@ -353,19 +353,49 @@ fn a_scan_dropped_on_the_sandbox_is_fitted_and_a_bad_file_changes_nothing() {
         bad_line.contains("not added:") && bad_line.contains("magic number"),
         "{bad_line}"
     );
-    assert!(bad_line.ends_with("(parts 5 -> 5)"), "{bad_line}");
-    assert!(line(&format!("demo drop: {cow_s}:")).ends_with("(parts 5 -> 6)"));
-    let rest = line("demo drop: part cow_scan at rest:");
-    assert!(rest.contains("at rest: true, 2999 points"), "{rest}");
-    assert!(rest.ends_with("local DOFs: true"), "{rest}");
-    let mean: f64 = rest
-        .split("mean distance ")
-        .nth(1)
-        .and_then(|t| t.split(' ').next())
-        .and_then(|t| t.parse().ok())
-        .unwrap_or_else(|| panic!("{rest}"));
-    assert!(mean < 0.01, "{rest}");
-    // The new part (the sixth, in the palette's sixth colour) is in the picture.
+    assert!(bad_line.contains("(parts 5 -> 5;"), "{bad_line}");
+    // The cow's scan is split into jointed parts off the frame: the window kept drawing frames
+    // while it was split (a split inside a frame would be over before the next).
+    let cow_line = line(&format!("demo drop: {cow_s}:"));
+    let number_after = |text: &str, key: &str| -> usize {
+        text.split(key)
+            .nth(1)
+            .and_then(|t| t.split(|c: char| !c.is_ascii_digit()).next())
+            .and_then(|t| t.parse().ok())
+            .unwrap_or_else(|| panic!("no number after {key:?} in {text}"))
+    };
+    let parts = number_after(&cow_line, "added as ");
+    assert!(parts >= 2, "{cow_line}");
+    assert!(
+        cow_line.contains(&format!("(parts 5 -> {};", 5 + parts)),
+        "{cow_line}"
+    );
+    assert!(number_after(&cow_line, "split over ") >= 2, "{cow_line}");
+    // Every part of it is fitted with its local DOFs and comes to rest, and the parts follow
+    // their shares of the points: a point lies on average within 1 % of its part's extent from
+    // it. (Some parts of a few dozen points lie farther: docs/results.md.)
+    let rests: Vec<&str> = stdout
+        .lines()
+        .filter(|l| l.starts_with("demo drop: part cow_scan "))
+        .collect();
+    assert_eq!(rests.len(), parts, "{stdout}");
+    let (mut shared, mut weighted) = (0, 0.0);
+    for rest in &rests {
+        assert!(rest.ends_with("local DOFs: true"), "{rest}");
+        let n = number_after(rest, "at rest: true, ");
+        let mean: f64 = rest
+            .split("mean distance ")
+            .nth(1)
+            .and_then(|t| t.split(' ').next())
+            .and_then(|t| t.parse().ok())
+            .unwrap_or_else(|| panic!("{rest}"));
+        shared += n;
+        weighted += n as f64 * mean;
+    }
+    assert_eq!(shared, 2999, "{stdout}");
+    assert!(weighted / 2999.0 < 0.01, "{}", rests.join("\n"));
+    // The new parts (from the sixth on, the first two in the palette's sixth and seventh
+    // colours, which the scene's five models do not use) are in the picture.
     let img = image::open(&out).expect("a PNG").to_rgb32f();
     let palette = [
         [0.90, 0.45, 0.20],
@@ -374,10 +404,14 @@ fn a_scan_dropped_on_the_sandbox_is_fitted_and_a_bad_file_changes_nothing() {
         [0.85, 0.30, 0.55],
         [0.95, 0.80, 0.25],
         [0.55, 0.40, 0.85],
+        [0.30, 0.80, 0.80],
         [0.5, 0.5, 0.5],
     ];
     let (_, counts) = colour_counts(&img, &palette, (320..1280, 0..720));
-    assert!(counts[5] > 3000, "the dropped scan's part: {counts:?}");
+    assert!(
+        counts[5] + counts[6] > 3000,
+        "the dropped scan's parts: {counts:?}"
+    );
     let _ = std::fs::remove_file(&out);
     let _ = std::fs::remove_file(&bad);
 }

@@ -7,7 +7,8 @@ use bevy::prelude::*;
 use bevy_deformable_sq::model::fit::{bounding_diagonal, residuals};
 use bevy_deformable_sq::model::image_fit::PartAxes;
 use bevy_deformable_sq::plugin::scene::{
-    AddedFile, DeformableScene, FilePlacement, SceneImage, add_file, add_part, save_scene,
+    AddedFile, AddingFile, DeformableScene, FileAdded, FilePlacement, SceneImage, add_file,
+    add_file_in_background, add_part, save_scene,
 };
 use bevy_deformable_sq::plugin::world_positions;
 use bevy_deformable_sq::prelude::*;
@@ -376,5 +377,59 @@ fn a_dropped_object_of_two_parts_becomes_two_jointed_parts_sharing_its_points() 
         );
         assert!(matches!(part.placement, PartPlacement::Pose { .. }));
     }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_file_added_in_the_background_joins_the_scene_when_its_split_is_done() {
+    let (dir, mut app, _camera, root) = chain_app("background");
+    let cloud = bevy_deformable_sq::synthetic::union_cloud(200, 2, 3000, 0.0, false);
+    let file = dir.join("body_and_limb.obj");
+    let text: String = cloud
+        .points
+        .iter()
+        .map(|p| format!("v {} {} {}\n", p.x, p.y, p.z))
+        .collect();
+    std::fs::write(&file, text).unwrap();
+    // A file that cannot be read is refused at once, and nothing starts.
+    let missing = dir.join("missing.obj");
+    let e = add_file_in_background(app.world_mut(), root, &missing, PLACE, &dir).unwrap_err();
+    assert!(
+        e.contains("missing.obj") && e.contains("cannot read"),
+        "{e}"
+    );
+
+    let task = add_file_in_background(app.world_mut(), root, &file, PLACE, &dir).unwrap();
+    // The call returns before the split: the scene is as it was, the task is there.
+    assert!(app.world().get::<AddingFile>(task).is_some());
+    assert_eq!(parts(&app, root).len(), 4);
+    let mut added = Vec::new();
+    let mut frames = 0;
+    while added.is_empty() {
+        app.update();
+        frames += 1;
+        let messages = app.world().resource::<Messages<FileAdded>>();
+        added.extend(messages.iter_current_update_messages().cloned());
+        assert!(frames < 100_000, "the split never ended");
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    assert_eq!(
+        added,
+        vec![FileAdded {
+            root,
+            file: file.clone(),
+            result: Ok(AddedFile::Part {
+                name: "body_and_limb 1".into(),
+                points: cloud.points.len(),
+                parts: 2,
+            }),
+        }]
+    );
+    assert!(app.world().get_entity(task).is_err(), "the task is gone");
+    for _ in 0..50 {
+        app.update();
+    }
+    assert_eq!(parts(&app, root).len(), 6, "the chain's four links and two");
+    assert_eq!(joint_count(&mut app), 4);
     let _ = std::fs::remove_dir_all(&dir);
 }

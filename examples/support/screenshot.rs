@@ -1,6 +1,6 @@
 //! Shared by the examples: where `assets/` is ([`assets_dir`]), and `--screenshot FILE
 //! [--exit-after-steps N]`, which runs until every model has taken N simulation steps (default
-//! 300) or come to rest, saves a screenshot of the window and exits — for CI and for the docs'
+//! 300) or come to rest and every dropped file has joined the scene, saves a screenshot of the window and exits — for CI and for the docs'
 //! images. Pipelines compile synchronously in this mode so the frame is never blank. A scripted
 //! run ends by itself: a scene that fails to load, or no model to simulate after
 //! [`FRAMES_WITHOUT_MODELS`] frames, exits with code 2 and a one-line message.
@@ -9,6 +9,7 @@ use bevy::app::PluginGroupBuilder;
 use bevy::prelude::*;
 use bevy::render::RenderPlugin;
 use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured, save_to_disk};
+use bevy_deformable_sq::plugin::scene::{AddingFile, FileAdded};
 use bevy_deformable_sq::prelude::{FitDriver, SceneInstance, SimControl, simulation_task_pools};
 use std::path::{Path, PathBuf};
 
@@ -107,9 +108,16 @@ fn take(
     mut req: ResMut<Request>,
     models: Query<(&SimControl, Option<&FitDriver>)>,
     scenes: Query<&SceneInstance>,
+    adding: Query<(), With<AddingFile>>,
+    mut added: MessageReader<FileAdded>,
     mut exit: MessageWriter<AppExit>,
 ) {
     req.frames += 1;
+    // A file that has just joined the scene respawns its parts in the next frames: wait for
+    // them as for the scene's first parts.
+    if added.read().count() > 0 {
+        req.frames = 1;
+    }
     if req.taken {
         return;
     }
@@ -128,6 +136,7 @@ fn take(
     // Every model has taken its steps, or stopped; a model with a fit once the fit has ended (a
     // fit pauses its model while it runs).
     let ready = !models.is_empty()
+        && adding.is_empty()
         && models.iter().all(|(c, fit)| {
             fit.is_none_or(FitDriver::is_done)
                 && (c.steps >= req.after_steps || c.paused || c.frozen)

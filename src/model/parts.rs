@@ -188,10 +188,12 @@ fn check_parts(n: usize, parts: usize) -> Result<(), FitError> {
 /// The first split: when every part starts from [`Initialization::Moments`], k-means on the
 /// points, and each part's first fit starts from its cluster's moments; when every part starts
 /// from an [`Initialization::Explicit`] pose, each point goes to the part whose initial surface
-/// is nearest. Later rounds start each part from its last fit.
+/// is nearest. Later rounds start each part from its last fit; a round that would leave a part
+/// fewer than [`MIN_POINTS`] points is not taken, and the partition ends unsettled with the
+/// points each part was last fitted to.
 ///
-/// Errors: a mix of the two kinds of start, fewer than [`MIN_POINTS`] points for some part (named),
-/// or a part's fit failing.
+/// Errors: a mix of the two kinds of start, fewer than [`MIN_POINTS`] points for some part in
+/// the first split (named), or a part's fit failing.
 pub fn partition(
     points: &[DVec3],
     opts: &[FitOptions],
@@ -243,29 +245,46 @@ pub fn partition(
     let mut fits: Vec<FitReport> = Vec::new();
     let mut taken = 0;
     let mut moved = 0;
+    // The ownership the last fits were fitted to.
+    let mut last: Option<Vec<usize>> = None;
     for _ in 0..rounds.max(1) {
-        taken += 1;
         let members = members_of(points, &owner, k);
         if let Some((j, m)) = members
             .iter()
             .enumerate()
             .find(|(_, m)| m.len() < MIN_POINTS)
         {
+            // A later round that would leave a part too few points to fit is not taken: the
+            // last round's fits stand, each with the points it was fitted to, unsettled.
+            if let Some(fitted) = last.take() {
+                owner = fitted;
+                break;
+            }
             return Err(FitError::BadOption(format!(
                 "part {j} was left with {} points (fewer than {MIN_POINTS}); try fewer parts",
                 m.len()
             )));
         }
         fits = fit_each(&members, &global)?;
+        taken += 1;
         let next = nearest_surface(points, fits.iter().map(|f| (&f.tess, &f.state))).0;
         for (o, f) in global.iter_mut().zip(&fits) {
             o.init = Initialization::Explicit(InitialPose::of(&f.state));
         }
         moved = next.iter().zip(&owner).filter(|(a, b)| a != b).count();
-        owner = next;
+        last = Some(std::mem::replace(&mut owner, next));
         if moved == 0 {
             break;
         }
+    }
+    // The last round's nearest surfaces, when they leave a part too few points, give way to
+    // the points it was fitted to, as above.
+    let mut count = vec![0usize; k];
+    owner.iter().for_each(|&j| count[j] += 1);
+    if count.iter().any(|&c| c < MIN_POINTS)
+        && let Some(fitted) = last
+    {
+        owner = fitted;
     }
     Ok(Partition {
         fits,

@@ -35,7 +35,9 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 mod add;
-pub use add::{AddedFile, FilePlacement, add_file, add_part};
+pub use add::{
+    AddedFile, AddingFile, FileAdded, FilePlacement, add_file, add_file_in_background, add_part,
+};
 
 /// A loaded scene: its definition and its data (points placed in the world, image potentials).
 #[derive(Asset, TypePath, Clone, Debug)]
@@ -444,9 +446,9 @@ pub fn save_scene(
     def.save(out).map_err(|e| e.to_string())
 }
 
-/// Registers the asset and its loader and the spawning system (needs `AssetPlugin`).
 /// Scene files as assets: the `.dsq.ron` loader, and the spawning of a [`DeformableSceneRoot`]'s
-/// parts in [`PreUpdate`]. It needs Bevy's `AssetPlugin` (in `DefaultPlugins`), added before or
+/// parts in [`PreUpdate`], after the files added in the background ([`add_file_in_background`])
+/// whose split is done have joined their scenes. It needs Bevy's `AssetPlugin` (in `DefaultPlugins`), added before or
 /// after it: with the `AssetPlugin` already there it registers at once, otherwise when the app's
 /// plugins are finished (`App::run` does that; a test that calls `App::update` itself calls
 /// `App::finish` first). Part of [`crate::DeformableSqPlugins`].
@@ -479,5 +481,6 @@ fn register_scene_assets(app: &mut App) {
     }
     app.init_asset::<DeformableScene>()
         .init_asset_loader::<DeformableSceneLoader>()
-        .add_systems(PreUpdate, spawn_scenes);
+        .add_message::<FileAdded>()
+        .add_systems(PreUpdate, (add::finish_added_files, spawn_scenes).chain());
 }

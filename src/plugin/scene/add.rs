@@ -7,13 +7,15 @@ use super::{DeformableScene, DeformableSceneRoot, scene_dir, scene_from_world};
 use crate::io::{decode_luminance, decode_points};
 use crate::model::fit::{FitOptions, MIN_POINTS};
 use crate::model::forces::image::DEFAULT_SIGMA;
-use crate::model::parts::{DEFAULT_MAX_PARTS, PartCount, fit_parts};
+use crate::model::parts::{DEFAULT_MAX_PARTS, PartCount, Whole, fit_parts};
 use crate::scene::{
     CameraDef, DataSource, Forces, PartDef, PartPlacement, Placement, SceneData, SceneDef,
 };
 use bevy::math::DVec3;
 use bevy::prelude::*;
+use bevy::tasks::{AsyncComputeTaskPool, Task, block_on, poll_once};
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 /// Where [`add_file`] puts what it adds, in world space.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -64,6 +66,9 @@ pub enum AddedFile {
 /// A file outside `assets_dir` is copied into `assets_dir/imported/` first, so the scene, saved,
 /// reopens through the asset server. A file that cannot be read or decoded, or has fewer than
 /// [`MIN_POINTS`] points, is an error naming it, and the scene is left as it was.
+///
+/// The split of a scan into parts takes seconds and runs here, on the calling thread; an app
+/// adds a file without holding up its frames with [`add_file_in_background`].
 pub fn add_file(
     world: &mut World,
     root: Entity,
@@ -71,16 +76,147 @@ pub fn add_file(
     placement: FilePlacement,
     assets_dir: &Path,
 ) -> Result<AddedFile, String> {
-    let shown = file.display();
+    read_file(world, root, file, placement, assets_dir)?
+        .split()?
+        .add_to(world, root)
+}
+
+/// Starts adding the file at `file` to the scene of `root` as [`add_file`] does, and returns at
+/// once: the file is read here (its errors are returned), and the scan's split into parts runs
+/// on the [`AsyncComputeTaskPool`]. The entity returned carries an [`AddingFile`] while it runs;
+/// when the split is done the scene gains the file, the entity is despawned, and a
+/// [`FileAdded`] message says what came of it.
+pub fn add_file_in_background(
+    world: &mut World,
+    root: Entity,
+    file: &Path,
+    placement: FilePlacement,
+    assets_dir: &Path,
+) -> Result<Entity, String> {
+    let read = read_file(world, root, file, placement, assets_dir)?;
+    let task = AsyncComputeTaskPool::get().spawn(async move { read.split() });
+    Ok(world
+        .spawn(AddingFile {
+            root,
+            file: file.to_path_buf(),
+            started: Instant::now(),
+            task,
+        })
+        .id())
+}
+
+/// A file being added to a scene in the background ([`add_file_in_background`]): while its
+/// scan is split into parts.
+#[derive(Component)]
+pub struct AddingFile {
+    root: Entity,
+    file: PathBuf,
+    started: Instant,
+    task: Task<Result<SplitFile, String>>,
+}
+
+impl AddingFile {
+    /// The file being added.
+    pub fn file(&self) -> &Path {
+        &self.file
+    }
+
+    /// The scene root it is added to.
+    pub fn root(&self) -> Entity {
+        self.root
+    }
+
+    /// How long it has been running.
+    pub fn elapsed(&self) -> Duration {
+        self.started.elapsed()
+    }
+}
+
+/// Sent once when a file added by [`add_file_in_background`] has joined its scene, or failed
+/// to.
+#[derive(Message, Clone, Debug, PartialEq)]
+pub struct FileAdded {
+    /// The scene root.
+    pub root: Entity,
+    /// The file.
+    pub file: PathBuf,
+    /// What was added ([`add_file`]'s result).
+    pub result: Result<AddedFile, String>,
+}
+
+/// `PreUpdate`: adds to their scenes the files whose split has finished, and sends
+/// [`FileAdded`] for each (by a command, as the scene changes).
+pub(super) fn finish_added_files(
+    mut running: Query<(Entity, &mut AddingFile)>,
+    mut commands: Commands,
+) {
+    for (e, mut adding) in &mut running {
+        let Some(split) = block_on(poll_once(&mut adding.task)) else {
+            continue;
+        };
+        let (root, file) = (adding.root, adding.file.clone());
+        commands.entity(e).despawn();
+        commands.queue(move |world: &mut World| {
+            let result = split.and_then(|s| s.add_to(world, root));
+            world.write_message(FileAdded { root, file, result });
+        });
+    }
+}
+
+/// A file read, decoded and placed for a scene, its object not yet split ([`read_file`]).
+struct ReadFile {
+    shown: String,
+    stem: String,
+    dir: PathBuf,
+    what: Read,
+}
+
+/// What a [`ReadFile`] holds.
+enum Read {
+    /// A scan: its source, how many points the file has, and the points placed in the world.
+    Points {
+        source: DataSource,
+        count: usize,
+        placed: Vec<DVec3>,
+    },
+    /// An image: its source, its size in pixels, and the camera that looks straight at it.
+    Image {
+        source: DataSource,
+        size: (usize, usize),
+        camera: CameraDef,
+    },
+}
+
+/// A file ready to join a scene: a scan split into parts, or an image ([`ReadFile::split`]).
+struct SplitFile {
+    read: ReadFile,
+    whole: Option<Whole>,
+}
+
+/// Reads `file` for the scene of `root` ([`add_file`]'s first half): decodes it, places it, and
+/// copies it among the assets when it lies outside them.
+fn read_file(
+    world: &World,
+    root: Entity,
+    file: &Path,
+    placement: FilePlacement,
+    assets_dir: &Path,
+) -> Result<ReadFile, String> {
+    let shown = file.display().to_string();
     let kind = Kind::of(file).ok_or_else(|| {
         format!("{shown}: not a point cloud (.obj, .ply) or an image (.png, .jpg, .jpeg)")
     })?;
     let bytes = std::fs::read(file).map_err(|e| format!("{shown}: cannot read: {e}"))?;
-    let mut def = scene_from_world(world, root, true)?;
+    if world.get::<DeformableSceneRoot>(root).is_none() {
+        return Err("not a scene root".into());
+    }
     let dir = scene_dir(world, root, assets_dir).ok_or("the scene has no file path")?;
-    let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("data");
-    let name = unused_name(&def, stem);
-    let added = match kind {
+    let stem = file
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("data")
+        .to_string();
+    let what = match kind {
         Kind::Points => {
             let raw = decode_points(file, &bytes).map_err(|e| e.to_string())?;
             if raw.len() < MIN_POINTS {
@@ -92,77 +228,120 @@ pub fn add_file(
             let framing = Placement::framing(&raw, placement.at, placement.radius)
                 .ok_or_else(|| format!("{shown}: the points all coincide or are not finite"))?;
             let path = source_path(file, &dir, assets_dir)?;
-            def.data.insert(
-                name.clone(),
-                DataSource::Points {
+            Read::Points {
+                source: DataSource::Points {
                     path,
                     placement: framing,
                 },
-            );
-            let placed: Vec<DVec3> = raw.iter().map(|p| framing.place(*p)).collect();
-            let (first, parts) =
-                add_parts(&mut def, &name, &placed).map_err(|e| format!("{shown}: {e}"))?;
-            AddedFile::Part {
-                name: first,
-                points: raw.len(),
-                parts,
+                count: raw.len(),
+                placed: raw.iter().map(|p| framing.place(*p)).collect(),
             }
         }
         Kind::Image => {
             let (w, h, _) = decode_luminance(file, &bytes).map_err(|e| e.to_string())?;
             let path = source_path(file, &dir, assets_dir)?;
             let center = [placement.at.x, placement.at.y];
-            def.data.insert(
-                name.clone(),
-                DataSource::Image {
+            Read::Image {
+                source: DataSource::Image {
                     path,
                     sigma: DEFAULT_SIGMA,
                     center,
                     extent: placement.extent,
                 },
-            );
-            // Straight on, as the image scenes look: the longer side fills about 70 % of a 45°
-            // view.
-            def.camera = Some(CameraDef {
-                eye: [center[0], center[1], 1.6 * placement.extent],
-                target: [center[0], center[1], 0.0],
-                up: [0.0, 1.0, 0.0],
-            });
-            AddedFile::Image { name, size: (w, h) }
+                size: (w, h),
+                // Straight on, as the image scenes look: the longer side fills about 70 % of a
+                // 45° view.
+                camera: CameraDef {
+                    eye: [center[0], center[1], 1.6 * placement.extent],
+                    target: [center[0], center[1], 0.0],
+                    up: [0.0, 1.0, 0.0],
+                },
+            }
         }
     };
-    replace_scene(world, root, def, &dir)?;
-    Ok(added)
+    Ok(ReadFile {
+        shown,
+        stem,
+        dir,
+        what,
+    })
 }
 
-/// Adds the parts of the object `points` (world space, the scene's source `source`) to `def`:
-/// split by [`fit_parts`] into pure parts; one part placed `Auto`, or several placed at their
-/// fits, sharing the source, joined where they touch ([`SceneDef::add_whole`]), with local
-/// DOFs. Gives the first part's name and the count.
-fn add_parts(
-    def: &mut SceneDef,
-    source: &str,
-    points: &[DVec3],
-) -> Result<(String, usize), crate::model::fit::FitError> {
-    let opts = FitOptions {
-        global_only: true,
-        ..FitOptions::default()
+impl ReadFile {
+    /// Splits a scan into parts ([`fit_parts`], pure); the slow half of [`add_file`], and the
+    /// only one that needs no world.
+    fn split(self) -> Result<SplitFile, String> {
+        let whole = match &self.what {
+            Read::Points { placed, .. } => {
+                let opts = FitOptions {
+                    global_only: true,
+                    ..FitOptions::default()
+                }
+                .for_data();
+                let whole = fit_parts(placed, PartCount::Auto(DEFAULT_MAX_PARTS), &opts)
+                    .map_err(|e| format!("{}: {e}", self.shown))?;
+                Some(whole)
+            }
+            Read::Image { .. } => None,
+        };
+        Ok(SplitFile { read: self, whole })
     }
-    .for_data();
-    let whole = fit_parts(points, PartCount::Auto(DEFAULT_MAX_PARTS), &opts)?;
+}
+
+impl SplitFile {
+    /// Adds the file to the scene of `root` as it is now ([`add_file`]'s last step).
+    fn add_to(self, world: &mut World, root: Entity) -> Result<AddedFile, String> {
+        let ReadFile {
+            stem, dir, what, ..
+        } = self.read;
+        let mut def = scene_from_world(world, root, true)?;
+        let name = unused_name(&def, &stem);
+        let added = match (what, self.whole) {
+            (Read::Points { source, count, .. }, Some(whole)) => {
+                def.data.insert(name.clone(), source);
+                let (first, parts) = add_parts(&mut def, &name, &whole);
+                AddedFile::Part {
+                    name: first,
+                    points: count,
+                    parts,
+                }
+            }
+            (
+                Read::Image {
+                    source,
+                    size,
+                    camera,
+                },
+                _,
+            ) => {
+                def.data.insert(name.clone(), source);
+                def.camera = Some(camera);
+                AddedFile::Image { name, size }
+            }
+            (Read::Points { .. }, None) => return Err("the scan was not split".into()),
+        };
+        replace_scene(world, root, def, &dir)?;
+        Ok(added)
+    }
+}
+
+/// Adds the parts of `whole` (split from the scene's source `source`) to `def`: one part placed
+/// `Auto`, or several placed at their fits, sharing the source, joined where they touch
+/// ([`SceneDef::add_whole`]), with local DOFs. Gives the first part's name and the count.
+fn add_parts(def: &mut SceneDef, source: &str, whole: &Whole) -> (String, usize) {
     if whole.fits.len() == 1 {
         let mut part = PartDef::new(source);
         part.placement = PartPlacement::Auto;
         part.forces = Forces::range(source);
         def.parts.push(part);
-        return Ok((source.to_string(), 1));
+        return (source.to_string(), 1);
     }
     // The split's parts are pure superquadrics; here they get their membranes from the fit.
-    let first = def.add_whole(source, &whole);
+    let first = def.add_whole(source, whole);
     for part in &mut def.parts[first..] {
         part.free.global_only = false;
     }
-    Ok((format!("{source} 1"), whole.fits.len()))
+    (format!("{source} 1"), whole.fits.len())
 }
 
 /// Adds `part` to the scene of `root` (its data sources must be the scene's already): a part
