@@ -44,6 +44,15 @@ fn chain_app(name: &str) -> (PathBuf, App, Entity, Entity) {
     (dir, app, camera, root)
 }
 
+/// Writes `points` to `file` as the vertices of an OBJ.
+fn write_points<'a>(file: &Path, points: impl IntoIterator<Item = &'a DVec3>) {
+    let text: String = points
+        .into_iter()
+        .map(|p| format!("v {} {} {}\n", p.x, p.y, p.z))
+        .collect();
+    std::fs::write(file, text).unwrap();
+}
+
 fn shipped_data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("assets/data")
@@ -101,14 +110,10 @@ fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
         7,
     );
     let view = DVec3::new(0.3, 0.4, 0.866).normalize();
-    let mut text = String::new();
-    for p in all.iter().filter(|p| p.dot(view) > 0.0) {
-        text.push_str(&format!("v {} {} {}\n", p.x, p.y, p.z));
-    }
-    let cow = std::env::temp_dir().join(format!("bdsq-blob-{}/blob_scan.obj", std::process::id()));
-    std::fs::create_dir_all(cow.parent().unwrap()).unwrap();
-    std::fs::write(&cow, text).unwrap();
-    let added = add_file(app.world_mut(), root, &cow, PLACE, &dir).unwrap();
+    let scan = std::env::temp_dir().join(format!("bdsq-blob-{}/blob_scan.obj", std::process::id()));
+    std::fs::create_dir_all(scan.parent().unwrap()).unwrap();
+    write_points(&scan, all.iter().filter(|p| p.dot(view) > 0.0));
+    let added = add_file(app.world_mut(), root, &scan, PLACE, &dir).unwrap();
     let AddedFile::Part {
         name,
         points,
@@ -122,7 +127,7 @@ fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
     let imported = dir.join("imported/blob_scan.obj");
     assert_eq!(
         std::fs::read(&imported).unwrap(),
-        std::fs::read(&cow).unwrap()
+        std::fs::read(&scan).unwrap()
     );
 
     for _ in 0..50 {
@@ -209,7 +214,7 @@ fn a_scan_added_to_a_scene_is_fitted_and_saves_and_reopens_as_it_was() {
     assert_eq!(*w2.get::<LocalDofs>(e2).unwrap(), local);
     assert_eq!(w2.get::<RangeData>(e2).unwrap().forces.points(), &pts[..]);
     let _ = std::fs::remove_dir_all(&dir);
-    let _ = std::fs::remove_dir_all(cow.parent().unwrap());
+    let _ = std::fs::remove_dir_all(scan.parent().unwrap());
 }
 
 #[test]
@@ -343,12 +348,7 @@ fn a_dropped_object_of_two_parts_becomes_two_jointed_parts_sharing_its_points() 
     let (dir, mut app, _camera, root) = chain_app("whole");
     let cloud = bevy_deformable_sq::synthetic::union_cloud(200, 2, 3000, 0.0, false);
     let file = dir.join("body_and_limb.obj");
-    let text: String = cloud
-        .points
-        .iter()
-        .map(|p| format!("v {} {} {}\n", p.x, p.y, p.z))
-        .collect();
-    std::fs::write(&file, text).unwrap();
+    write_points(&file, &cloud.points);
     let added = add_file(app.world_mut(), root, &file, PLACE, &dir).unwrap();
     assert_eq!(
         added,
@@ -385,12 +385,7 @@ fn a_file_added_in_the_background_joins_the_scene_when_its_split_is_done() {
     let (dir, mut app, _camera, root) = chain_app("background");
     let cloud = bevy_deformable_sq::synthetic::union_cloud(200, 2, 3000, 0.0, false);
     let file = dir.join("body_and_limb.obj");
-    let text: String = cloud
-        .points
-        .iter()
-        .map(|p| format!("v {} {} {}\n", p.x, p.y, p.z))
-        .collect();
-    std::fs::write(&file, text).unwrap();
+    write_points(&file, &cloud.points);
     // A file that cannot be read is refused at once, and nothing starts.
     let missing = dir.join("missing.obj");
     let e = add_file_in_background(app.world_mut(), root, &missing, PLACE, &dir).unwrap_err();

@@ -2,7 +2,7 @@
 //! thick limbs at random angles, sampled over the union's surface (a closed mesh's, by area) or
 //! seen from one side; the true parts are what a split of them is pinned to.
 
-use super::union::one_view;
+use super::union::{one_view, thin};
 use super::{Rng, unit_vector};
 use crate::model::deform::GlobalDeformation;
 use crate::model::fem::Tessellation;
@@ -267,17 +267,7 @@ fn sample(
         (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
         |(lo, hi), (x, _)| (lo.min(*x), hi.max(*x)),
     );
-    let sigma = noise * (hi - lo).length();
-    let stride = (cloud.len() as f64 / count as f64).max(1.0);
-    let (mut points, mut owner) = (Vec::new(), Vec::new());
-    let mut at = 0.0;
-    while (at as usize) < cloud.len() {
-        let (x, j) = cloud[at as usize];
-        points.push(x + sigma * DVec3::new(rng.normal(), rng.normal(), rng.normal()));
-        owner.push(j);
-        at += stride;
-    }
-    (points, owner)
+    thin(&cloud, count, noise * (hi - lo).length(), rng)
 }
 
 #[cfg(test)]

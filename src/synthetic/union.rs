@@ -98,22 +98,32 @@ pub fn union_cloud(seed: u64, parts: usize, points: usize, noise: f64, view: boo
     if view {
         cloud = one_view(cloud, unit_vector(&mut rng), points);
     }
-    // An even thinning to about `points`.
-    let stride = (cloud.len() as f64 / points as f64).max(1.0);
-    let mut out = UnionCloud {
+    let (points, owner) = thin(&cloud, points, noise, &mut rng);
+    UnionCloud {
         parts: poses,
-        points: Vec::new(),
-        owner: Vec::new(),
-    };
+        points,
+        owner,
+    }
+}
+
+/// An even thinning of `cloud` (points and their parts) to about `count`, each point moved by
+/// Gaussian noise `sigma` (data units): the points and their parts.
+pub(super) fn thin(
+    cloud: &[(DVec3, usize)],
+    count: usize,
+    sigma: f64,
+    rng: &mut Rng,
+) -> (Vec<DVec3>, Vec<usize>) {
+    let stride = (cloud.len() as f64 / count as f64).max(1.0);
+    let (mut points, mut owner) = (Vec::new(), Vec::new());
     let mut at = 0.0;
     while (at as usize) < cloud.len() {
         let (x, j) = cloud[at as usize];
-        out.points
-            .push(x + noise * DVec3::new(rng.normal(), rng.normal(), rng.normal()));
-        out.owner.push(j);
+        points.push(x + sigma * DVec3::new(rng.normal(), rng.normal(), rng.normal()));
+        owner.push(j);
         at += stride;
     }
-    out
+    (points, owner)
 }
 
 /// The surface area of `shape`, from a k = 41 tessellation.
