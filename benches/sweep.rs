@@ -1,29 +1,40 @@
-//! The fitter's defaults swept over generated clouds whose truth is known: partial views, noise
-//! 0–5 %, outliers 0–40 % (uniform in a box, or Gaussian about the object), exponents over
-//! [0.1, 1.9].
+//! The fitter's defaults swept over generated clouds whose truth is known
+//! (`synthetic::set_cloud`), set by set:
+//!
+//! - `mixed`: partial views, noise 0–5 %, outliers 0–40 % (uniform in a box, or Gaussian about
+//!   the object), exponents over [0.1, 1.9];
+//! - `outliers`: 40 % outliers in a Gaussian as wide as the object, 60 % seen, noise 2 %;
+//! - `partial`: 20 % outliers, 40 % seen, noise 1 %;
+//! - `deformed`: tapered and bent truths, fitted with `--taper --bend`.
 //!
 //! ```text
-//! cargo bench --bench sweep [-- --clouds N] [--local] [--export DIR] [--ems FILE]
+//! cargo bench --bench sweep [-- --set NAME|all] [--clouds N] [--local] [--export DIR] [--ems FILE]
 //! ```
 //!
 //! Each cloud is fitted as `dsq fit CLOUD [--global-only]` fits it (`CloudOptions`, the defaults
-//! for a user's cloud) and scored two ways, both as fractions of the inliers' bounding-box
-//! diagonal:
+//! for a user's cloud) and scored three ways:
 //!
 //! - **truth**: the mean distance from the noise-free samples of the seen part of the true
-//!   surface to the fitted surface: how far the fit lies from the object;
-//! - **inliers**: the mean distance of the noisy surface points to the fitted surface.
+//!   surface to the fitted surface, over the inliers' bounding-box diagonal: how far the fit lies
+//!   from the object;
+//! - **inliers**: the same for the noisy surface points;
+//! - **÷ floor**: the inliers' mean distance to the fit over their mean distance to the true
+//!   surface. 1 explains them as well as the truth does; a fit several times above 1 has missed
+//!   the object.
 //!
-//! Prints a row per cloud, then the worst and the median of each. `--local` fits with local
-//! DOFs (the default fit); without it a pure superquadric (`--global-only`). `--export DIR`
-//! writes each cloud as `DIR/sweep_N.ply` and its truth as `DIR/truth.jsonl`; `--ems FILE` reads
-//! another fitter's superquadrics of those clouds (JSON lines with `cloud`, `shape` [ε1, ε2],
-//! `scale` [3 semi-axes], `translation` and `rot`, 9 numbers row-major) and scores them the same
-//! way. `cargo test` runs four clouds and fails when a figure is not finite.
+//! Prints a row per cloud, then for each set the worst and the median, and how many clouds are
+//! within 1.1 of the floor. `--local` fits with local DOFs (the default fit); without it a pure
+//! superquadric (`--global-only`). `--clouds N` (default 64) clouds per set. `--export DIR` writes
+//! each cloud as `DIR/SET_N.ply` and the truths as `DIR/truth.jsonl`; `--ems FILE` reads another
+//! fitter's superquadrics of those clouds (JSON lines with `cloud`, `shape` [ε1, ε2], `scale`
+//! [3 semi-axes], `translation` and `rot`, 9 numbers row-major) and scores them the same way.
+//! `cargo test` runs two clouds of each set and fails when a figure is not finite.
 
 use bevy_deformable_sq::model::fit::{CloudOptions, FitOptions, fit, fit_residuals};
 use bevy_deformable_sq::model::fit::{bounding_diagonal, surface_distances};
-use bevy_deformable_sq::synthetic::sweep_cloud;
+use bevy_deformable_sq::model::lm::{DeformedPose, deformed_distances};
+use bevy_deformable_sq::synthetic::{GroundTruthCloud, SweepSet, set_cloud};
+use glam::DVec3;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
@@ -44,143 +55,227 @@ fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64
 }
 
-fn main() -> ExitCode {
-    let benched = mode::benched();
-    let mut clouds = if benched { 64u64 } else { 4 };
-    let (mut local, mut export, mut ems_file) = (false, None::<PathBuf>, None::<PathBuf>);
+fn worst(v: &[f64]) -> f64 {
+    v.iter().copied().fold(0.0, f64::max)
+}
+
+/// What the command line asked for.
+struct Args {
+    sets: Vec<SweepSet>,
+    clouds: u64,
+    local: bool,
+    export: Option<PathBuf>,
+    ems: Option<PathBuf>,
+}
+
+const USAGE: &str = "usage: sweep [--set mixed|outliers|partial|deformed|all] [--clouds N] [--local] [--export DIR] [--ems FILE]";
+
+fn parse(benched: bool) -> Result<Args, String> {
+    let mut a = Args {
+        sets: SweepSet::ALL.to_vec(),
+        clouds: if benched { 64 } else { 2 },
+        local: false,
+        export: None,
+        ems: None,
+    };
     let mut args = std::env::args()
         .skip(1)
         .filter(|a| a != "--bench")
         .filter(|_| benched);
-    while let Some(a) = args.next() {
-        match a.as_str() {
-            "--local" => local = true,
-            "--clouds" => match args.next().and_then(|n| n.parse().ok()) {
-                Some(n) => clouds = n,
-                None => {
-                    eprintln!("--clouds: expected a count");
-                    return ExitCode::from(2);
+    while let Some(flag) = args.next() {
+        match flag.as_str() {
+            "--local" => a.local = true,
+            "--set" => {
+                let name = args.next().unwrap_or_default();
+                a.sets = match (name.as_str(), SweepSet::from_name(&name)) {
+                    ("all", _) => SweepSet::ALL.to_vec(),
+                    (_, Some(s)) => vec![s],
+                    _ => return Err(format!("--set: no set is named {name:?}\n{USAGE}")),
                 }
-            },
-            "--export" => export = args.next().map(PathBuf::from),
-            "--ems" => ems_file = args.next().map(PathBuf::from),
-            _ => {
-                eprintln!("usage: sweep [--clouds N] [--local] [--export DIR] [--ems FILE]");
-                return ExitCode::from(2);
             }
+            "--clouds" => {
+                a.clouds = args
+                    .next()
+                    .and_then(|n| n.parse().ok())
+                    .ok_or("--clouds: expected a count")?
+            }
+            "--export" => a.export = Some(args.next().ok_or("--export: expected a folder")?.into()),
+            "--ems" => a.ems = Some(args.next().ok_or("--ems: expected a file")?.into()),
+            _ => return Err(USAGE.into()),
         }
     }
-    let theirs = match ems::read_results(ems_file.as_deref()) {
+    Ok(a)
+}
+
+/// The mean distance of `points` from the cloud's true surface.
+fn from_truth(c: &GroundTruthCloud, points: &[DVec3]) -> f64 {
+    if c.deformation.is_identity() {
+        mean(&surface_distances(&c.truth, points))
+    } else {
+        let truth = DeformedPose {
+            pose: c.truth,
+            deformation: c.deformation,
+        };
+        mean(&deformed_distances(&truth, points))
+    }
+}
+
+/// One set's figures.
+#[derive(Default)]
+struct Tally {
+    truth: Vec<f64>,
+    floor: Vec<f64>,
+    other_truth: Vec<f64>,
+    other_floor: Vec<f64>,
+    ms: Vec<f64>,
+}
+
+impl Tally {
+    fn print(&self, set: SweepSet) {
+        let within = |v: &[f64]| v.iter().filter(|&&r| r <= 1.1).count();
+        println!(
+            "{}: truth worst {:.5}, median {:.5}; ÷ floor worst {:.2}, median {:.3}, ≤ 1.1 on {} of {}, > 1.5 on {}; median {:.0} ms",
+            set.name(),
+            worst(&self.truth),
+            median(self.truth.clone()),
+            worst(&self.floor),
+            median(self.floor.clone()),
+            within(&self.floor),
+            self.floor.len(),
+            self.floor.iter().filter(|&&r| r > 1.5).count(),
+            median(self.ms.clone()),
+        );
+        if !self.other_floor.is_empty() {
+            println!(
+                "{} (other): truth worst {:.5}, median {:.5}; ÷ floor worst {:.2}, median {:.3}, ≤ 1.1 on {} of {}",
+                set.name(),
+                worst(&self.other_truth),
+                median(self.other_truth.clone()),
+                worst(&self.other_floor),
+                median(self.other_floor.clone()),
+                within(&self.other_floor),
+                self.other_floor.len(),
+            );
+        }
+    }
+}
+
+fn main() -> ExitCode {
+    let a = match parse(mode::benched()) {
+        Ok(a) => a,
+        Err(e) => {
+            eprintln!("{e}");
+            return ExitCode::from(2);
+        }
+    };
+    let theirs = match ems::read_results(a.ems.as_deref()) {
         Ok(r) => r,
         Err(e) => {
             eprintln!("{e}");
             return ExitCode::from(2);
         }
     };
-    if let Some(dir) = &export
+    if let Some(dir) = &a.export
         && let Err(e) = std::fs::create_dir_all(dir)
     {
         eprintln!("{}: {e}", dir.display());
         return ExitCode::from(2);
     }
-    let opts = match (CloudOptions {
-        global_only: !local,
-        ..CloudOptions::default()
-    })
-    .resolve(FitOptions::default(), true)
-    {
-        Ok(p) => p,
-        Err(e) => {
-            eprintln!("{e}");
-            return ExitCode::from(2);
-        }
-    };
     println!(
-        "| cloud | seen | noise | outliers | ε1, ε2 (truth) | ε1, ε2 (fit) | truth | inliers | ms | other: truth | other: inliers |"
+        "| cloud | points | seen | noise | outliers | ε1, ε2 (truth) | ε1, ε2 (fit) | truth | inliers | ÷ floor | ms | other: truth | other: ÷ floor |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|");
-    let (mut truth_d, mut inlier_d, mut ratios) = (Vec::new(), Vec::new(), Vec::new());
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     let mut truths = String::new();
-    for i in 1..=clouds {
-        let (r, c) = sweep_cloud(i);
-        let inliers = &c.points[..c.points.len() - c.outliers];
-        if let Some(dir) = &export {
-            let path = dir.join(format!("sweep_{i}.ply"));
-            if let Err(e) = ply::write_ascii(&path, &c.points) {
-                eprintln!("{}: {e}", path.display());
+    let mut tallies = Vec::new();
+    for &set in &a.sets {
+        let deformed = set == SweepSet::Deformed;
+        let opts = match (CloudOptions {
+            global_only: !a.local,
+            taper: deformed,
+            bend: deformed,
+            ..CloudOptions::default()
+        })
+        .resolve(FitOptions::default(), true)
+        {
+            Ok(p) => p,
+            Err(e) => {
+                eprintln!("{e}");
                 return ExitCode::from(2);
             }
-            truths += &ply::truth_line(&format!("sweep_{i}"), &c.truth);
-        }
-        let start = Instant::now();
-        let report = match fit(&c.points, &opts, |_| {}) {
-            Ok(report) => report,
-            Err(e) => {
-                eprintln!("cloud {i}: {e}");
-                return ExitCode::FAILURE;
-            }
         };
-        let ms = start.elapsed().as_secs_f64() * 1e3;
-        let diagonal = bounding_diagonal(inliers);
-        let scale = |r: bevy_deformable_sq::model::fit::Residuals| r.mean * r.diagonal / diagonal;
-        let truth = scale(fit_residuals(&report.tess, &report.state, &c.surface));
-        let inlier = scale(fit_residuals(&report.tess, &report.state, inliers));
-        let other = theirs
-            .iter()
-            .find(|f| f.cloud == format!("sweep_{i}"))
-            .map(|f| {
+        let mut tally = Tally::default();
+        for i in 1..=a.clouds {
+            let name = format!("{}_{i}", set.name());
+            let (r, c) = set_cloud(set, i);
+            let inliers = &c.points[..c.points.len() - c.outliers];
+            if let Some(dir) = &a.export {
+                let path = dir.join(format!("{name}.ply"));
+                if let Err(e) = ply::write_ascii(&path, &c.points) {
+                    eprintln!("{}: {e}", path.display());
+                    return ExitCode::from(2);
+                }
+                truths += &ply::truth_line(&name, &c.truth);
+            }
+            let start = Instant::now();
+            let report = match fit(&c.points, &opts, |_| {}) {
+                Ok(report) => report,
+                Err(e) => {
+                    eprintln!("{name}: {e}");
+                    return ExitCode::FAILURE;
+                }
+            };
+            let ms = start.elapsed().as_secs_f64() * 1e3;
+            let diagonal = bounding_diagonal(inliers);
+            let floor = from_truth(&c, inliers);
+            let scale = |r: bevy_deformable_sq::model::fit::Residuals| r.mean * r.diagonal;
+            let truth = scale(fit_residuals(&report.tess, &report.state, &c.surface)) / diagonal;
+            let inlier = scale(fit_residuals(&report.tess, &report.state, inliers));
+            let other = theirs.iter().find(|f| f.cloud == name).map(|f| {
                 let pose = f.pose();
                 (
                     mean(&surface_distances(&pose, &c.surface)) / diagonal,
-                    mean(&surface_distances(&pose, inliers)) / diagonal,
+                    mean(&surface_distances(&pose, inliers)) / floor,
                 )
             });
-        if let Err(e) = mode::check_finite(&format!("cloud {i}"), &[truth, inlier]) {
-            eprintln!("{e}");
-            return ExitCode::FAILURE;
+            let other = other.filter(|_| r.noise > 0.0);
+            // A noise-free cloud has no floor to be measured against.
+            let ratio = (r.noise > 0.0).then_some(inlier / floor);
+            if let Err(e) = mode::check_finite(&name, &[truth, ratio.unwrap_or(0.0)]) {
+                eprintln!("{e}");
+                return ExitCode::FAILURE;
+            }
+            let (t, f) = (c.truth.shape, report.state.shape);
+            println!(
+                "| {name} | {} | {:.0} % | {:.0} % | {:.0} % {:?} | {:.2}, {:.2} | {:.2}, {:.2} | {truth:.5} | {:.5} | {} | {ms:.0} | {} | {} |",
+                r.surface_points,
+                r.kept * 100.0,
+                r.noise * 100.0,
+                r.outliers * 100.0,
+                r.outlier_spread,
+                t.e1,
+                t.e2,
+                f.e1,
+                f.e2,
+                inlier / diagonal,
+                ratio.map_or("–".into(), |r| format!("{r:.2}")),
+                other.map_or("–".into(), |o| format!("{:.5}", o.0)),
+                other.map_or("–".into(), |o| format!("{:.2}", o.1)),
+            );
+            tally.truth.push(truth);
+            tally.floor.extend(ratio);
+            tally.ms.push(ms);
+            if let Some((t, f)) = other {
+                tally.other_truth.push(t);
+                tally.other_floor.push(f);
+            }
         }
-        let (t, f) = (c.truth.shape, report.state.shape);
-        println!(
-            "| {i} | {:.0} % | {:.0} % | {:.0} % {:?} | {:.2}, {:.2} | {:.2}, {:.2} | {:.5} | {:.5} | {ms:.0} | {} | {} |",
-            r.kept * 100.0,
-            r.noise * 100.0,
-            r.outliers * 100.0,
-            r.outlier_spread,
-            t.e1,
-            t.e2,
-            f.e1,
-            f.e2,
-            truth,
-            inlier,
-            other.map_or("–".into(), |o| format!("{:.5}", o.0)),
-            other.map_or("–".into(), |o| format!("{:.5}", o.1)),
-        );
-        truth_d.push(truth);
-        inlier_d.push(inlier);
-        if let Some((_, o)) = other {
-            ratios.push(inlier / o);
-        }
+        tallies.push((set, tally));
     }
-    let worst = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     println!();
-    println!(
-        "truth: worst {:.5}, median {:.5}; inliers: worst {:.5}, median {:.5}; clouds over 1 %: {}",
-        worst(&truth_d),
-        median(truth_d.clone()),
-        worst(&inlier_d),
-        median(inlier_d.clone()),
-        truth_d.iter().filter(|&&d| d > 0.01).count()
-    );
-    if !ratios.is_empty() {
-        println!(
-            "inliers ÷ other's: worst {:.3}, median {:.3}, over 1.1: {} of {}",
-            worst(&ratios),
-            median(ratios.clone()),
-            ratios.iter().filter(|&&r| r > 1.1).count(),
-            ratios.len()
-        );
+    for (set, tally) in &tallies {
+        tally.print(*set);
     }
-    if let Some(dir) = &export
+    if let Some(dir) = &a.export
         && let Err(e) = std::fs::write(dir.join("truth.jsonl"), truths)
     {
         eprintln!("{}: {e}", dir.join("truth.jsonl").display());

@@ -11,6 +11,7 @@
 //! * [`union_cloud`]: a whole object of known parts, a body with limbs, whole or seen from one
 //!   side.
 
+use crate::model::deform::GlobalDeformation;
 use crate::model::fit::{FitOptions, Initialization, Solver};
 use crate::model::init::{InitialPose, moments};
 use crate::model::superquadric::{SuperquadricParams, shape_at};
@@ -18,9 +19,11 @@ use glam::{DQuat, DVec3};
 use std::f64::consts::{FRAC_PI_2, PI};
 
 mod creature;
+mod sweeps;
 mod union;
 
 pub use creature::{Creature, CreaturePart, creature};
+pub use sweeps::{SweepSet, set_cloud, sweep_cloud};
 pub use union::{UnionCloud, union_cloud};
 
 /// A small deterministic generator (SplitMix64), so data and tests are the same on every machine.
@@ -314,6 +317,8 @@ pub struct CloudRecipe {
     pub outlier_spread: OutlierSpread,
     /// The range ε1 and ε2 are drawn from, uniformly.
     pub epsilon: [f64; 2],
+    /// Tapering and bending of the truth (none by default).
+    pub deformation: GlobalDeformation,
 }
 
 /// How [`ground_truth_cloud`] spreads its outliers.
@@ -339,6 +344,7 @@ impl Default for CloudRecipe {
             outliers: 0.2,
             outlier_spread: OutlierSpread::Uniform,
             epsilon: [0.2, 1.8],
+            deformation: GlobalDeformation::default(),
         }
     }
 }
@@ -348,6 +354,8 @@ impl Default for CloudRecipe {
 pub struct GroundTruthCloud {
     /// The superquadric the points were drawn from (pose and shape, data units).
     pub truth: InitialPose,
+    /// The truth's tapering and bending (the recipe's), applied in its frame before the pose.
+    pub deformation: GlobalDeformation,
     /// Surface points (noisy) followed by outliers.
     pub points: Vec<DVec3>,
     /// The surface points before noise: samples of the seen part of the true surface.
@@ -398,8 +406,8 @@ fn unit_vector(rng: &mut Rng) -> DVec3 {
 
 /// A cloud from a random superquadric, generated as EMS's paper tests its fitter: semi-axes
 /// uniform in [0.5, 3], ε1 and ε2 uniform in `recipe.epsilon` (EMS's [0.2, 1.8] by default), a uniformly random rotation and a
-/// translation in [−1, 1]³; surface points drawn uniformly by area, the part on one side of a
-/// random plane kept (`recipe.kept` of them), Gaussian noise, then uniform outliers. Deterministic
+/// translation in [−1, 1]³; surface points drawn uniformly by area (then tapered and bent by
+/// `recipe.deformation`), the part on one side of a random plane kept (`recipe.kept` of them), Gaussian noise, then uniform outliers. Deterministic
 /// in `seed`.
 pub fn ground_truth_cloud(seed: u64, recipe: &CloudRecipe) -> GroundTruthCloud {
     let mut rng = Rng::new(seed);
@@ -422,6 +430,12 @@ pub fn ground_truth_cloud(seed: u64, recipe: &CloudRecipe) -> GroundTruthCloud {
     );
     let drawn = (recipe.surface_points as f64 / recipe.kept.clamp(0.05, 1.0)).ceil() as usize;
     let mut surface = area_uniform(&shape, drawn, &mut rng);
+    if !recipe.deformation.is_identity() {
+        let height = shape.semi_axes().z;
+        for p in &mut surface {
+            *p = recipe.deformation.apply(*p, height);
+        }
+    }
     let view = unit_vector(&mut rng);
     surface.sort_by(|p, q| q.dot(view).total_cmp(&p.dot(view)));
     surface.truncate(recipe.surface_points);
@@ -461,35 +475,11 @@ pub fn ground_truth_cloud(seed: u64, recipe: &CloudRecipe) -> GroundTruthCloud {
             rotation,
             shape,
         },
+        deformation: recipe.deformation,
         points,
         surface,
         outliers,
     }
-}
-
-/// Cloud `i` of the generated set the fitter's defaults are swept on (`cargo bench --bench
-/// sweep`), with its recipe: 2000 surface points; four outlier fractions (0, 10, 20 and 40 %),
-/// four noise levels (0, 1, 3 and 5 % of the largest semi-axis), three views (the whole
-/// surface, 60 % and 40 % of it) and both outlier spreads, interleaved so that any 32
-/// consecutive clouds meet every outlier fraction with every noise level and spread, and any 12
-/// every outlier fraction with every view; exponents over [0.1, 1.9].
-pub fn sweep_cloud(i: u64) -> (CloudRecipe, GroundTruthCloud) {
-    const OUTLIERS: [f64; 4] = [0.0, 0.1, 0.2, 0.4];
-    const NOISE: [f64; 4] = [0.0, 0.01, 0.03, 0.05];
-    const KEPT: [f64; 3] = [1.0, 0.6, 0.4];
-    let recipe = CloudRecipe {
-        surface_points: 2000,
-        kept: KEPT[(i % 3) as usize],
-        noise: NOISE[((i / 4) % 4) as usize],
-        outliers: OUTLIERS[(i % 4) as usize],
-        outlier_spread: if (i / 16).is_multiple_of(2) {
-            OutlierSpread::Uniform
-        } else {
-            OutlierSpread::Gaussian
-        },
-        epsilon: [0.1, 1.9],
-    };
-    (recipe, ground_truth_cloud(1000 + i, &recipe))
 }
 
 /// How far a fitted superquadric is from the ground truth, after matching the two by the

@@ -35,28 +35,8 @@ impl Mixture {
     /// plain mean distance would let a surface that passes through the outliers win.
     pub fn score(&self, distances: &[f64]) -> f64 {
         let n = distances.len().max(1) as f64;
-        let floor = self.sigma2_floor.max(f64::MIN_POSITIVE);
-        let mut sigma2 = (distances.iter().map(|d| d * d).sum::<f64>() / (3.0 * n)).max(floor);
-        if self.outlier_ratio > 0.0 {
-            for _ in 0..SCORE_EM_ROUNDS {
-                let (mut wd, mut w) = (0.0, 0.0);
-                for &d in distances {
-                    let p = self.inlier(d, sigma2);
-                    wd += p * d * d;
-                    w += p;
-                }
-                let next = if w > 0.0 {
-                    (wd / (3.0 * w)).max(floor)
-                } else {
-                    floor
-                };
-                let done = (next - sigma2).abs() <= 1e-6 * sigma2;
-                sigma2 = next;
-                if done {
-                    break;
-                }
-            }
-        }
+        let spread = distances.iter().map(|d| d * d).sum::<f64>() / (3.0 * n);
+        let sigma2 = self.fitted_sigma2(distances, spread);
         let (w, density) = (self.outlier_ratio, self.outlier_density);
         let norm = (2.0 * std::f64::consts::PI * sigma2).powf(-1.5);
         let nll: f64 = distances
@@ -67,6 +47,40 @@ impl Mixture {
             })
             .sum();
         nll / n
+    }
+}
+
+impl Mixture {
+    /// The inliers' variance σ² per coordinate that maximises the likelihood of points at signed
+    /// `distances` from a surface held where it is: EM on σ² alone from `from` (at least the
+    /// floor), to the nearest fixed point. From the points' whole spread (every point an
+    /// inlier) it is the widest explanation the surface has; `from` itself without an outlier
+    /// model.
+    pub fn fitted_sigma2(&self, distances: &[f64], from: f64) -> f64 {
+        let floor = self.sigma2_floor.max(f64::MIN_POSITIVE);
+        let mut sigma2 = from.max(floor);
+        if self.outlier_ratio <= 0.0 {
+            return sigma2;
+        }
+        for _ in 0..SCORE_EM_ROUNDS {
+            let (mut wd, mut w) = (0.0, 0.0);
+            for &d in distances {
+                let p = self.inlier(d, sigma2);
+                wd += p * d * d;
+                w += p;
+            }
+            let next = if w > 0.0 {
+                (wd / (3.0 * w)).max(floor)
+            } else {
+                floor
+            };
+            let done = (next - sigma2).abs() <= 1e-6 * sigma2;
+            sigma2 = next;
+            if done {
+                break;
+            }
+        }
+        sigma2
     }
 }
 
