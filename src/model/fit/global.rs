@@ -16,7 +16,7 @@ use crate::model::forces::range::SIGMA_FLOOR;
 use crate::model::init::InitialPose;
 use crate::model::lm::{
     DeformedFit, DeformedPose, FINE_POINTS, FINE_ROUNDS, LmOptions, Metric, Mixture, coarse_sample,
-    fit_deformed, solve, spread_sample,
+    deformed_distances, fit_deformed, solve, spread_sample,
 };
 use crate::model::parallel::run_parallel;
 use crate::model::superquadric::LEAST_EPSILON;
@@ -93,14 +93,17 @@ pub(super) fn lm_options(ctx: &Context, first: &InitialPose) -> (LmOptions, f64)
         max_semi_axis: LM_SEMI_AXIS_REACH * farthest,
         min_epsilon: LEAST_EPSILON,
         hold_exponents: false,
+        own_sigma2: false,
     };
     (lm, volume.cbrt() * reach / 100.0)
 }
 
-/// The global stage from the `starts` (unit frame): see the module docs. A fit with local DOFs
+/// The global stage from the `starts` (unit frame), with the starts of the points that lie on a
+/// surface probed too: see the module docs. A fit with local DOFs
 /// always tries the similarity candidates: which of them the membrane starts from matters more
 /// than their cost, a few Levenberg–Marquardt rounds on a subsample.
 pub(super) fn solve_global(ctx: &Context, starts: &[InitialPose]) -> Result<Global, FitError> {
+    let probes = super::hypotheses::surface_starts(ctx);
     let opts = &ctx.opts;
     let first = starts
         .first()
@@ -113,7 +116,7 @@ pub(super) fn solve_global(ctx: &Context, starts: &[InitialPose]) -> Result<Glob
     };
     let solution = solve(
         &ctx.unit,
-        starts,
+        (starts, &probes),
         sigma2,
         &lm,
         similarity_candidates,
@@ -183,7 +186,7 @@ pub(super) fn solve_lean_global(
 /// The tapering and bending of a solved fit (`free`: taper, bend) from its superquadric `pose`
 /// (unit frame): [`fit_deformed`] from the superquadric with each of its axes as z, undeformed
 /// and as the points' centreline shows ([`seed_deformation`]), side by side on a subsample; the
-/// nearest to it kept and polished on every point (on [`FINE_POINTS`] of a larger cloud).
+/// one the outlier mixture scores best kept and polished on every point (on [`FINE_POINTS`] of a larger cloud).
 fn solve_deformed(
     unit: &[DVec3],
     pose: &InitialPose,
@@ -213,15 +216,25 @@ fn solve_deformed(
             });
         }
     }
+    // The starts are the fitted superquadric's: each begins at its own inliers' variance.
+    let lm = &LmOptions {
+        own_sigma2: true,
+        ..*lm
+    };
     let run = |start: &DeformedPose, _: &mut dyn FnMut(&())| {
         fit_deformed(&sample, start, sigma2, lm, free)
     };
     let fits = run_parallel(&starts, run, &mut |_: &()| {});
     let iterations: u32 = fits.iter().map(|f| f.iterations).sum();
+    // Ranked as the plain search ranks its fits, by how well the mixture explains the points: a
+    // plain mean distance would prefer a surface that passes through the outliers.
+    let score = |f: &DeformedFit| lm.mixture.score(&deformed_distances(&f.pose, &sample));
     let mut best = fits
         .into_iter()
-        .filter(|f| f.mean_distance.is_finite())
-        .min_by(|a, b| a.mean_distance.total_cmp(&b.mean_distance))
+        .map(|f| (score(&f), f))
+        .filter(|(s, f)| s.is_finite() && f.mean_distance.is_finite())
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, f)| f)
         .unwrap_or(DeformedFit {
             pose: starts[0],
             mean_distance: f64::INFINITY,

@@ -1,5 +1,6 @@
 //! The states a fit starts from and the candidates it tries: the moments frame with each of its
-//! axes as the model's z ([`initial_hypotheses`]), and a fitted superquadric's similar shapes
+//! axes as the model's z ([`initial_hypotheses`]; of the points that lie densely on a surface
+//! too, `surface_starts`), and a fitted superquadric's similar shapes
 //! (axis turns with swapped exponents, cross-section duals: [`similarity_candidates`],
 //! [`cross_section_dual`]).
 
@@ -137,10 +138,167 @@ fn unit_hypotheses(unit: &[DVec3], norm: &Normalization, opts: &FitOptions) -> V
     }
 }
 
+/// More starts of a fit's context (unit frame): the moments frames of its [`surface_points`],
+/// when they are not all of them and the fit starts from moments (none for an explicit pose).
+/// Outliers scattered about an object pull the moments of all the points (and the starts of
+/// [`starts`]) far from it; these are not.
+pub(super) fn surface_starts(ctx: &Context) -> Vec<InitialPose> {
+    match (ctx.opts.init, surface_points(&ctx.unit)) {
+        (Initialization::Moments, Some(dense)) => axis_hypotheses(&initial_pose(&dense)).to_vec(),
+        _ => Vec::new(),
+    }
+}
+
+/// The neighbour whose distance measures a point's local density in [`surface_points`].
+const DENSITY_NEIGHBOURS: usize = 8;
+
+/// EM rounds of [`surface_points`]' two-component mixture.
+const DENSITY_EM_ROUNDS: usize = 30;
+
+/// The points of a spread sample of `unit` ([`coarse_sample`]) that lie densely, as on a sampled
+/// surface, rather than sparsely, as outliers scattered through a volume do; `None` when that
+/// is all of them or too few to take moments of. A surface sampled with density ρ has its k-th
+/// neighbour at r ∝ (k/ρ)^½, outliers in a volume at r ∝ (k/ρ)^⅓ and far sparser: the log
+/// distances to the [`DENSITY_NEIGHBOURS`]-th neighbour are split by a two-component Gaussian
+/// mixture (EM), and a point is dense when the nearer component explains it better. The
+/// moments of all the points are pulled by outliers far from the object; these are not.
+pub(super) fn surface_points(unit: &[DVec3]) -> Option<Vec<DVec3>> {
+    use crate::model::forces::nearest::kd_tree;
+    use kiddo::SquaredEuclidean;
+    let sample = crate::model::lm::coarse_sample(unit);
+    if sample.len() <= 4 * DENSITY_NEIGHBOURS {
+        return None;
+    }
+    let tree = kd_tree(&sample)?;
+    let k = std::num::NonZeroUsize::new(DENSITY_NEIGHBOURS + 1)?;
+    let log_r: Vec<f64> = sample
+        .iter()
+        .map(|p| {
+            let near = tree
+                .query(&p.to_array())
+                .nearest_n::<SquaredEuclidean<f64>>(k)
+                .execute();
+            0.5 * near.last().map_or(0.0, |n| n.distance).max(1e-300).ln()
+        })
+        .collect();
+    let dense = two_component_split(&log_r)?;
+    let points: Vec<DVec3> = sample
+        .iter()
+        .zip(&dense)
+        .filter(|(_, d)| **d)
+        .map(|(p, _)| *p)
+        .collect();
+    (points.len() >= 4 * DENSITY_NEIGHBOURS && points.len() < sample.len()).then_some(points)
+}
+
+/// Which of the values `x` the lower component of a two-component 1-D Gaussian mixture fitted by
+/// EM (from the quartiles) explains better; `None` when the values do not spread, or when the
+/// two components do not describe them better than one Gaussian by the Bayesian information
+/// criterion (three more parameters, each at ½ ln n): one population, nothing to split.
+fn two_component_split(x: &[f64]) -> Option<Vec<bool>> {
+    let n = x.len();
+    let mut sorted = x.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let (q1, q3) = (sorted[n / 4], sorted[3 * n / 4]);
+    let var0 = ((q3 - q1) / 2.0).powi(2);
+    if !(var0 > 0.0) {
+        return None;
+    }
+    let gauss = |v: f64, mean: f64, var: f64| {
+        (-0.5 * (v - mean).powi(2) / var).exp() / (2.0 * std::f64::consts::PI * var).sqrt()
+    };
+    let one_mean = x.iter().sum::<f64>() / n as f64;
+    let one_var = x.iter().map(|v| (v - one_mean).powi(2)).sum::<f64>() / n as f64;
+    let one: f64 = x.iter().map(|&v| gauss(v, one_mean, one_var).ln()).sum();
+    let (mut mean, mut var, mut weight) = ([q1, q3], [var0; 2], [0.5; 2]);
+    let mut low = vec![0.0; n];
+    let mut two = f64::NEG_INFINITY;
+    for _ in 0..DENSITY_EM_ROUNDS {
+        two = 0.0;
+        for (l, &v) in low.iter_mut().zip(x) {
+            let a = weight[0] * gauss(v, mean[0], var[0]);
+            let b = weight[1] * gauss(v, mean[1], var[1]);
+            *l = if a + b > 0.0 {
+                a / (a + b)
+            } else {
+                f64::from(v < mean[1])
+            };
+            two += (a + b).max(f64::MIN_POSITIVE).ln();
+        }
+        for c in 0..2 {
+            let r = |l: f64| if c == 0 { l } else { 1.0 - l };
+            let w: f64 = low.iter().map(|&l| r(l)).sum();
+            if !(w > 1.0) {
+                return None;
+            }
+            mean[c] = low.iter().zip(x).map(|(&l, &v)| r(l) * v).sum::<f64>() / w;
+            var[c] = (low
+                .iter()
+                .zip(x)
+                .map(|(&l, &v)| r(l) * (v - mean[c]).powi(2))
+                .sum::<f64>()
+                / w)
+                .max(1e-6 * var0);
+            weight[c] = w / n as f64;
+        }
+    }
+    if two - one <= 1.5 * (n as f64).ln() {
+        return None;
+    }
+    Some(low.iter().map(|&l| l > 0.5).collect())
+}
+
 /// The moments frame with each principal axis in turn as the model's z axis: the superquadric's
 /// z is special (ε1 shapes its profile), and which data axis it belongs on is not always the one
 /// of largest spread (a squat mug's axis is its smallest).
 fn axis_hypotheses(pose: &InitialPose) -> [InitialPose; 3] {
     // Cyclic permutation keeps the frame right-handed: (x, y, z) → (y, z, x) → (z, x, y).
     std::array::from_fn(|i| turned_axes(pose, i, false))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synthetic::{Rng, SweepSet, set_cloud};
+
+    #[test]
+    fn two_populations_are_split_and_one_is_not() {
+        let mut rng = Rng::new(3);
+        let one: Vec<f64> = (0..600).map(|_| rng.normal()).collect();
+        assert_eq!(two_component_split(&one), None);
+        let two: Vec<f64> = (0..600)
+            .map(|i| rng.normal() * 0.3 + if i % 3 == 0 { 4.0 } else { 0.0 })
+            .collect();
+        let split = two_component_split(&two).expect("two populations");
+        let right = split
+            .iter()
+            .enumerate()
+            .filter(|(i, low)| **low == (i % 3 != 0))
+            .count();
+        assert!(right >= 590, "{right} of 600 assigned right");
+        assert_eq!(two_component_split(&[1.0; 100]), None);
+    }
+
+    #[test]
+    fn surface_points_leave_scattered_outliers_out() {
+        // 40 % outliers in a Gaussian about the object: the dense points are nearly all on it.
+        let (_, c) = set_cloud(SweepSet::Outliers, 4);
+        let inliers = c.points.len() - c.outliers;
+        let dense = surface_points(&c.points).expect("outliers to leave out");
+        let on_surface = dense
+            .iter()
+            .filter(|p| c.points[..inliers].contains(p))
+            .count();
+        assert!(
+            on_surface as f64 >= 0.85 * dense.len() as f64,
+            "{on_surface} of {} dense points on the surface",
+            dense.len()
+        );
+        // Most of the sample's surface points are kept (the sample holds 60 % of them).
+        let sample = crate::model::lm::coarse_sample(&c.points).len();
+        assert!(
+            on_surface as f64 >= 0.8 * 0.6 * sample as f64,
+            "{on_surface} of {sample}"
+        );
+    }
 }

@@ -475,6 +475,7 @@ pub(super) fn engine_options() -> LmOptions {
         max_semi_axis: f64::INFINITY,
         min_epsilon: MIN_EPSILON,
         hold_exponents: false,
+        own_sigma2: false,
     }
 }
 

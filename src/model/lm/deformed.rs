@@ -386,6 +386,7 @@ mod tests {
             max_semi_axis: f64::INFINITY,
             min_epsilon: crate::model::superquadric::LEAST_EPSILON,
             hold_exponents: false,
+            own_sigma2: false,
         };
         // The distance at the foot found afresh at each pose.
         let distance = |p: &DeformedPose, q: DVec3| {
@@ -453,6 +454,7 @@ mod tests {
             max_semi_axis: f64::INFINITY,
             min_epsilon: crate::model::superquadric::LEAST_EPSILON,
             hold_exponents: false,
+            own_sigma2: false,
         };
         let before = feet_and_cost(&start, &points, &[]).1;
         let fit = fit_deformed(&points, &start, 1e-2, &opts, [true; NUM_DEFORM]);

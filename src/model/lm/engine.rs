@@ -35,6 +35,12 @@ pub struct LmOptions {
     pub min_epsilon: f64,
     /// Hold ε1 and ε2 where they are (fit the pose and the semi-axes alone).
     pub hold_exponents: bool,
+    /// Start at the start's own inliers' variance ([`Mixture::fitted_sigma2`], EM on σ² alone
+    /// from the given one) rather than at the given one. A start that lies on the object among
+    /// outliers keeps to it, where the given variance would weigh the outliers as inliers and
+    /// pull it into them; a start that fits some of the points and is to grow over the rest
+    /// (a merge of pieces) needs the given, wider one.
+    pub own_sigma2: bool,
 }
 
 /// A normal matrix JᵀWJ (lower triangle while it is summed) and JᵀWr over N unknowns.
@@ -118,7 +124,8 @@ fn weighted(e: &[f64], w: &[f64]) -> f64 {
 /// EM rounds of `problem` from `start` (see the module docs), from an inlier variance of at
 /// least `sigma2` and the mixture's floor, and with `spread` at least the start's own spread
 /// (Σ eᵢ² / 3n): a start far from the points would otherwise call most of them outliers and
-/// come to rest where it is.
+/// come to rest where it is. With [`LmOptions::own_sigma2`], from the start's own variance
+/// found from there.
 pub(crate) fn solve_em<const N: usize, P: Problem<N>>(
     problem: &P,
     start: &P::Model,
@@ -138,7 +145,11 @@ pub(crate) fn solve_em<const N: usize, P: Problem<N>>(
         model: *start,
         cost: f64::INFINITY,
         weights: Vec::new(),
-        sigma2: sigma2.max(own).max(mixture.sigma2_floor),
+        sigma2: if opts.own_sigma2 {
+            mixture.fitted_sigma2(&e, sigma2.max(own))
+        } else {
+            sigma2.max(own).max(mixture.sigma2_floor)
+        },
         residuals: Vec::new(),
         iterations: 0,
         converged: false,

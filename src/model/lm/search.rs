@@ -9,11 +9,14 @@
 //! Gaussian–uniform mixture that weighs them, at each fit's own σ². A plain mean distance would
 //! prefer a surface that passes through the outliers to one on the inliers:
 //!
-//! - **from the starts** (`probe_and_continue`): each start gets [`PROBE_ROUNDS`] EM rounds
-//!   of the radial distance, the best goes on to rest, and its similarity candidates are
-//!   treated the same way while one of them fits closer (EMS's similarity switching; the
-//!   radial distance's wide basin, with the dual and axis candidates, finds the sections and
-//!   the squareness of clean partial clouds);
+//! - **from the starts** (`probe_and_continue`): each start, and each of the `probes` (the
+//!   moments of the points that lie on a surface, away from scattered outliers), gets
+//!   [`PROBE_ROUNDS`] EM rounds of the radial distance twice, from the given inlier variance
+//!   and from the start's own ([`LmOptions::own_sigma2`]: a wide variance weighs outliers as
+//!   inliers and pulls a start that lies on the object into them); the best goes on to rest,
+//!   and its similarity candidates are treated the same way while one of them fits closer
+//!   (EMS's similarity switching; the radial distance's wide basin, with the dual and axis
+//!   candidates, finds the sections and the squareness of clean partial clouds);
 //! - **from placed starts** (`placed_search`): each start is first placed with its exponents
 //!   held and the [`Coverage`] term on (the solved counterpart of the dynamics' placing stage,
 //!   which keeps a model from shrinking into the bulk of a cloud and leaving its limbs), then
@@ -131,24 +134,35 @@ fn in_score_order(poses: &[InitialPose], points: &[DVec3], mixture: &Mixture) ->
 type Scored = (LmFit, f64, InitialPose);
 
 /// [`fit_em`] for [`PROBE_ROUNDS`] from each of `starts` side by side (threads of their own),
-/// then the one with the least finite [`score`] on to rest: that fit and the steps all of them
-/// took.
+/// from `sigma2` and, with `own_too`, from each start's own σ² as well
+/// ([`LmOptions::own_sigma2`]), then the one with the least finite [`score`] on to rest: that
+/// fit and the steps all of them took.
 fn probe_and_continue(
     points: &[DVec3],
     starts: &[InitialPose],
     sigma2: f64,
     opts: &LmOptions,
+    own_too: bool,
 ) -> Option<(Scored, u32)> {
     let probe = LmOptions {
         max_rounds: PROBE_ROUNDS.min(opts.max_rounds),
         ..*opts
     };
-    let run = |start: &InitialPose, _: &mut dyn FnMut(&())| {
-        let fit = fit_em(points, start, sigma2, &probe);
+    let ways: &[bool] = if own_too { &[false, true] } else { &[false] };
+    let tries: Vec<(InitialPose, bool)> = starts
+        .iter()
+        .flat_map(|s| ways.iter().map(move |&own| (*s, own)))
+        .collect();
+    let run = |&(start, own): &(InitialPose, bool), _: &mut dyn FnMut(&())| {
+        let probe = LmOptions {
+            own_sigma2: own || probe.own_sigma2,
+            ..probe
+        };
+        let fit = fit_em(points, &start, sigma2, &probe);
         let s = score(&fit.pose, points, &opts.mixture);
-        (fit, s, *start)
+        (fit, s, start)
     };
-    let runs = run_parallel(starts, run, &mut |_: &()| {});
+    let runs = run_parallel(&tries, run, &mut |_: &()| {});
     let mut iterations = runs.iter().map(|(f, _, _)| f.iterations).sum();
     let (mut fit, mut s, start) = runs
         .into_iter()
@@ -220,6 +234,8 @@ pub(super) fn passes_through(fit: &LmFit, n: usize, mixture: &Mixture) -> bool {
 struct Search<'a> {
     points: &'a [DVec3],
     starts: &'a [InitialPose],
+    /// More starts for the search from the starts alone.
+    probes: &'a [InitialPose],
     sigma2: f64,
     opts: &'a LmOptions,
     candidates: &'a (dyn Fn(&InitialPose) -> Vec<InitialPose> + Sync),
@@ -232,12 +248,13 @@ fn search_from_starts(s: &Search) -> Option<(Scored, u32)> {
         metric: Metric::Radial,
         ..*s.opts
     };
+    let all: Vec<InitialPose> = s.starts.iter().chain(s.probes).copied().collect();
     let ((mut best, mut least, mut start), mut iterations) =
-        probe_and_continue(s.points, s.starts, s.sigma2, &radial)?;
+        probe_and_continue(s.points, &all, s.sigma2, &radial, !s.probes.is_empty())?;
     for _ in 0..s.max_switches {
         let others = (s.candidates)(&best.pose);
         let Some(((fit, score, from), spent)) =
-            probe_and_continue(s.points, &others, best.sigma2, &radial)
+            probe_and_continue(s.points, &others, best.sigma2, &radial, false)
         else {
             break;
         };
@@ -317,7 +334,9 @@ fn placed_search(s: &Search, stop: &AtomicBool) -> Option<(Scored, u32)> {
     Some(((best, least, start), iterations))
 }
 
-/// Fits a superquadric to `all_points` from `starts` (see the module docs): the two searches
+/// Fits a superquadric to `all_points` from `starts` (see the module docs; the search from the
+/// starts probes `probes` too: starts that need no placing, such as the moments of the points
+/// that lie on a surface, away from the outliers): the two searches
 /// side by side on [`coarse_sample`]`(all_points)` with `opts` (each phase sets its own
 /// metric: the options' is not used), from inlier variance `sigma2`, each trying the `candidates` of its
 /// fits (similarity candidates) at most `max_switches` times; the fit that explains the
@@ -327,7 +346,7 @@ fn placed_search(s: &Search, stop: &AtomicBool) -> Option<(Scored, u32)> {
 /// search came to rest). `None` when no start gives a finite fit.
 pub fn solve(
     all_points: &[DVec3],
-    starts: &[InitialPose],
+    (starts, probes): (&[InitialPose], &[InitialPose]),
     sigma2: f64,
     opts: &LmOptions,
     candidates: impl Fn(&InitialPose) -> Vec<InitialPose> + Sync,
@@ -341,6 +360,7 @@ pub fn solve(
     let search = Search {
         points: &sample,
         starts,
+        probes,
         sigma2,
         opts,
         candidates: &candidates,
@@ -415,7 +435,8 @@ pub fn solve_lean(
         metric: Metric::Radial,
         ..*opts
     };
-    let ((fit, _, start), mut iterations) = probe_and_continue(&sample, starts, sigma2, &radial)?;
+    let ((fit, _, start), mut iterations) =
+        probe_and_continue(&sample, starts, sigma2, &radial, false)?;
     let polish = LmOptions {
         metric: Metric::Normal,
         ..*opts

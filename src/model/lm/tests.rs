@@ -24,6 +24,7 @@ fn options(outlier_ratio: f64) -> LmOptions {
         max_semi_axis: f64::INFINITY,
         min_epsilon: MIN_EPSILON,
         hold_exponents: false,
+        own_sigma2: false,
     }
 }
 
@@ -150,7 +151,15 @@ fn the_solve_recovers_the_truth_from_a_far_start_and_a_near_one() {
     far.translation += DVec3::new(2.0, 0.0, 0.0);
     far.shape.a *= 0.3;
     for starts in [vec![far, truth], vec![far]] {
-        let s = solve(&points, &starts, 0.05, &options(0.0), |_| Vec::new(), 2).unwrap();
+        let s = solve(
+            &points,
+            (&starts, &[]),
+            0.05,
+            &options(0.0),
+            |_| Vec::new(),
+            2,
+        )
+        .unwrap();
         assert!(starts.contains(&s.start));
         assert!(
             mean_surface(&s.fit.pose, &points) < 1e-6,
@@ -160,7 +169,7 @@ fn the_solve_recovers_the_truth_from_a_far_start_and_a_near_one() {
         assert!(s.fit.pose.shape.is_finite() && s.fit.cost.is_finite());
     }
     // An empty set of starts has no solution, and no panic.
-    assert!(solve(&points, &[], 0.05, &options(0.0), |_| Vec::new(), 2).is_none());
+    assert!(solve(&points, (&[], &[]), 0.05, &options(0.0), |_| Vec::new(), 2).is_none());
 }
 
 /// Mean |surface distance| of `points` to `pose`.
@@ -188,7 +197,15 @@ fn the_surface_polish_brings_a_noisy_elongated_fit_closer() {
         9,
     );
     let radial_only = fit_em(&points, &truth, 0.01, &options(0.0));
-    let polished = solve(&points, &[truth], 0.01, &options(0.0), |_| Vec::new(), 0).unwrap();
+    let polished = solve(
+        &points,
+        (&[truth], &[]),
+        0.01,
+        &options(0.0),
+        |_| Vec::new(),
+        0,
+    )
+    .unwrap();
     let (before, after) = (
         mean_surface(&radial_only.pose, &points),
         mean_surface(&polished.fit.pose, &points),
@@ -272,4 +289,66 @@ fn only_a_fit_through_its_inliers_at_the_floor_ends_the_search() {
         ..exact
     };
     assert!(!search::passes_through(&near, points.len(), &opts.mixture));
+}
+
+#[test]
+fn a_start_on_the_object_stays_there_among_heavy_outliers() {
+    // 40 % outliers about the object: fitted from the truth, the fit keeps to it when the
+    // inliers' variance starts at the start's own and not at one that takes in the outliers.
+    use crate::synthetic::{SweepSet, set_cloud};
+    for i in [21, 25, 31] {
+        let (_, c) = set_cloud(SweepSet::Outliers, i);
+        let inliers = &c.points[..c.points.len() - c.outliers];
+        let opts = LmOptions {
+            metric: Metric::Surface,
+            own_sigma2: true,
+            ..options(0.2)
+        };
+        let (lo, hi) = c.points.iter().fold(
+            (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+            |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+        );
+        let extent = hi - lo;
+        let opts = LmOptions {
+            mixture: Mixture {
+                outlier_density: 1.0 / (extent.x * extent.y * extent.z),
+                ..opts.mixture
+            },
+            ..opts
+        };
+        // A wide first σ² (a tenth of the object's size), as a search starts with.
+        let fit = fit_em(&c.points, &c.truth, 0.01 * c.truth.shape.a.powi(2), &opts);
+        let floor = crate::model::fit::surface_distances(&c.truth, inliers);
+        let d = crate::model::fit::surface_distances(&fit.pose, inliers);
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let ratio = mean(&d) / mean(&floor);
+        assert!(ratio < 1.1, "cloud {i}: inliers at {ratio} times the floor");
+    }
+}
+
+#[test]
+fn the_fitted_variance_is_the_inliers_among_outliers() {
+    let mut rng = crate::synthetic::Rng::new(5);
+    let sigma = 0.01;
+    let mut d: Vec<f64> = (0..800).map(|_| sigma * rng.normal()).collect();
+    d.extend((0..400).map(|_| rng.range(-1.0, 1.0)));
+    let m = Mixture {
+        outlier_ratio: 0.2,
+        outlier_density: 1.0,
+        sigma2_floor: 1e-12,
+    };
+    // From the whole spread, EM on σ² alone comes down to the inliers' (per coordinate: a
+    // distance's variance is σ², its square's mean over 3 coordinates σ²/3 for a 1-D residual).
+    let s = m.fitted_sigma2(
+        &d,
+        d.iter().map(|d| d * d).sum::<f64>() / (3.0 * d.len() as f64),
+    );
+    let expected = sigma * sigma / 3.0;
+    assert!((s / expected - 1.0).abs() < 0.25, "σ² {s} for {expected}");
+    // Without an outlier model it is the start itself.
+    let none = Mixture {
+        outlier_ratio: 0.0,
+        ..m
+    };
+    assert_eq!(none.fitted_sigma2(&d, 0.5), 0.5);
 }
