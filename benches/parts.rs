@@ -25,8 +25,8 @@ use bevy_deformable_sq::io::{load_points_sampled, sample_surface};
 use bevy_deformable_sq::model::fit::{
     CloudOptions, FitOptions, bounding_diagonal, fit, point_distances,
 };
-use bevy_deformable_sq::model::forces::nearest::nearest_indices;
 use bevy_deformable_sq::model::init::InitialPose;
+use bevy_deformable_sq::model::nearest::nearest_indices;
 use bevy_deformable_sq::model::parts::{DEFAULT_MAX_PARTS, PartCount, Whole, fit_parts};
 use bevy_deformable_sq::synthetic::creature;
 use glam::DVec3;

@@ -282,7 +282,7 @@ pub fn seen_whole(tess: &Tessellation, node_x: &[DVec3], points: &[DVec3], small
     if node_x.is_empty() || points.len() < 2 {
         return false;
     }
-    let Some(tree) = crate::model::forces::nearest::kd_tree(points) else {
+    let Some(tree) = crate::model::nearest::kd_tree(points) else {
         return false;
     };
     let stride = (points.len() / SPACING_SAMPLE).max(1);

@@ -11,7 +11,7 @@
 //! 3. **the global stage**, by one of two plans ([`FitOptions::solver`]):
 //!    - **solved** (the default, beyond the paper; [`Solver::Solved`]): the superquadric's rest
 //!      state, with its tapering and bending when free, by Levenberg–Marquardt
-//!      ([`crate::model::lm::solve`], [`crate::model::lm::fit_deformed`]);
+//!      ([`solve`], [`crate::model::lm::fit_deformed`]);
 //!    - **the paper's dynamics** ([`Solver::Dynamics`]): the explicit Euler steps of eq. (15)
 //!      under range springs, stage by stage ([`Stage`]), as section VI-B runs them;
 //! 4. **the membrane**, with local DOFs: solved by linear solves for fixed attachments
@@ -33,6 +33,7 @@ mod options;
 mod relax;
 mod report;
 mod residuals;
+mod search;
 #[cfg(test)]
 mod tests;
 
@@ -55,6 +56,10 @@ pub use residuals::{
     point_distances, point_distances_parallel, residuals, surface_distances,
     weighted_mean_distance,
 };
+pub use search::{
+    COARSE_POINTS, FINE_POINTS, FINE_ROUNDS, PLACING_TOLERANCE, PROBE_ROUNDS, PROBE_STEPS,
+    Solution, coarse_sample, ellipsoid_carrier, score, solve, solve_lean, spread_sample,
+};
 
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
@@ -72,7 +77,7 @@ pub fn fit(
 }
 
 /// A pure superquadric fitted to `points` by one lean search (from `opts`' starts, without
-/// similarity switches or the placed search; [`crate::model::lm::solve_lean`]), in the data's
+/// similarity switches or the placed search; [`solve_lean`]), in the data's
 /// frame and units: a quick fit for a caller that weighs many candidate pieces of a cloud
 /// ([`crate::model::parts`]). Its tapering, bending and local DOFs are not fitted. Errors as
 /// [`fit`]'s.

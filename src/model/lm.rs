@@ -16,8 +16,8 @@
 //!   closest surface point ([`Metric`]); the last keeps each point's foot between evaluations,
 //!   so that its search starts where it ended ([`super::distance::closest_point_from`]);
 //! - the coverage term ([`Coverage`]) can be added, to place a model over the whole cloud;
-//! - [`solve`] ([`mod@search`]) runs the whole search: starts, placing, similarity switches and the
-//!   polish on every point.
+//! - the search that runs it from many starts lives with the fit that calls it
+//!   ([`crate::model::fit::solve`]).
 //!
 //! [`super::fit::fit`] uses it by default ([`super::fit::Solver::Solved`]); the paper's
 //! dynamics stay available as [`super::fit::Solver::Dynamics`], and the plugin's per-frame
@@ -30,7 +30,6 @@ mod deformed;
 mod engine;
 mod mixture;
 mod plain;
-pub mod search;
 pub use coverage::{COVERAGE_K, Coverage};
 pub use deformed::{
     DeformedFit, DeformedPose, NUM_DEFORMED, SEED_RAYS, deformed_distances, fit_deformed,
@@ -39,6 +38,5 @@ pub use engine::LmOptions;
 pub(crate) use engine::{Problem, solve_em};
 pub use mixture::Mixture;
 pub use plain::{LmFit, apply_increment, bounded_increment, fit_em, fit_em_with, weighted_cost};
-pub use search::*;
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

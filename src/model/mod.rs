@@ -24,6 +24,7 @@ pub mod init;
 pub mod joint;
 pub mod linalg;
 pub mod lm;
+pub mod nearest;
 pub mod noise;
 mod parallel;
 pub mod parts;

@@ -20,7 +20,7 @@
 
 use super::init::{Moments, Normalization, moments};
 use super::linalg::{cholesky_solve, symmetric_eigen3};
-use crate::model::forces::nearest::kd_tree;
+use crate::model::nearest::kd_tree;
 use glam::DVec3;
 use kiddo::SquaredEuclidean;
 use std::num::NonZeroUsize;

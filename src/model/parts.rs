@@ -28,7 +28,7 @@ mod merge;
 mod patches;
 mod split;
 
-use super::lm::spread_sample;
+use super::fit::spread_sample;
 pub use joints::{PartJoint, joints};
 pub use split::{
     DEFAULT_MAX_PARTS, PART_PARAMETERS, PATCHES, Scale, TOLERANCE, WORK_POINTS, split,

@@ -1,5 +1,5 @@
 //! The solved fit's global stage (beyond the paper): the superquadric's rest state by
-//! Levenberg–Marquardt ([`crate::model::lm::solve`]: the axis hypotheses and similarity
+//! Levenberg–Marquardt ([`super::solve`]: the axis hypotheses and similarity
 //! candidates searched on a subsample, the kept fit polished on every point), and with tapering
 //! or bending free its deformation after it ([`crate::model::lm::fit_deformed`], from each of its
 //! axes as z, undeformed and as the points' centreline shows).
@@ -8,6 +8,7 @@ use super::context::Context;
 use super::hypotheses::{similarity_candidates, turned_axes};
 use super::options::FitError;
 use super::relax::has_joint_stage;
+use super::search::{FINE_POINTS, FINE_ROUNDS, coarse_sample, solve, solve_lean, spread_sample};
 use crate::model::centreline::seed_deformation;
 use crate::model::deform::GlobalDeformation;
 use crate::model::dynamics::ModelState;
@@ -15,8 +16,7 @@ use crate::model::fem::Tessellation;
 use crate::model::forces::range::SIGMA_FLOOR;
 use crate::model::init::InitialPose;
 use crate::model::lm::{
-    DeformedFit, DeformedPose, FINE_POINTS, FINE_ROUNDS, LmOptions, Metric, Mixture, coarse_sample,
-    deformed_distances, fit_deformed, solve, spread_sample,
+    DeformedFit, DeformedPose, LmOptions, Metric, Mixture, deformed_distances, fit_deformed,
 };
 use crate::model::parallel::run_parallel;
 use crate::model::superquadric::LEAST_EPSILON;
@@ -121,6 +121,7 @@ pub(super) fn solve_global(ctx: &Context, starts: &[InitialPose]) -> Result<Glob
         &lm,
         similarity_candidates,
         switches,
+        opts.coverage,
     )
     .ok_or_else(|| FitError::BadOption("no initial state to start from".into()))?;
     let fit = &solution.fit;
@@ -169,7 +170,7 @@ pub(super) fn held_global(ctx: &Context, pose: &InitialPose) -> Global {
 }
 
 /// A pure superquadric fitted to `ctx`'s points from `starts` (unit frame) by the lean search
-/// ([`crate::model::lm::solve_lean`]): the superquadric alone, without its deformation.
+/// ([`super::solve_lean`]): the superquadric alone, without its deformation.
 pub(super) fn solve_lean_global(
     ctx: &Context,
     starts: &[InitialPose],
@@ -178,7 +179,7 @@ pub(super) fn solve_lean_global(
         .first()
         .ok_or_else(|| FitError::BadOption("no initial state to start from".into()))?;
     let (lm, sigma2) = lm_options(ctx, first);
-    crate::model::lm::solve_lean(&ctx.unit, starts, sigma2, &lm)
+    solve_lean(&ctx.unit, starts, sigma2, &lm)
         .map(|s| s.fit.pose)
         .ok_or_else(|| FitError::BadOption("no initial state to start from".into()))
 }

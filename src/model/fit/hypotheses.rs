@@ -163,9 +163,9 @@ const DENSITY_EM_ROUNDS: usize = 30;
 /// mixture (EM), and a point is dense when the nearer component explains it better. The
 /// moments of all the points are pulled by outliers far from the object; these are not.
 pub(super) fn surface_points(unit: &[DVec3]) -> Option<Vec<DVec3>> {
-    use crate::model::forces::nearest::kd_tree;
+    use crate::model::nearest::kd_tree;
     use kiddo::SquaredEuclidean;
-    let sample = crate::model::lm::coarse_sample(unit);
+    let sample = super::search::coarse_sample(unit);
     if sample.len() <= 4 * DENSITY_NEIGHBOURS {
         return None;
     }
@@ -295,7 +295,7 @@ mod tests {
             dense.len()
         );
         // Most of the sample's surface points are kept (the sample holds 60 % of them).
-        let sample = crate::model::lm::coarse_sample(&c.points).len();
+        let sample = crate::model::fit::coarse_sample(&c.points).len();
         assert!(
             on_surface as f64 >= 0.8 * 0.6 * sample as f64,
             "{on_surface} of {sample}"

@@ -17,10 +17,10 @@ use super::mesh::joint_k;
 use super::options::FitError;
 use super::relax::{Relaxation, implicit_joint_options};
 use super::residuals::mean_distance;
+use super::search::{FINE_POINTS, ellipsoid_carrier, spread_sample};
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
 use crate::model::init::InitialPose;
-use crate::model::lm::{FINE_POINTS, ellipsoid_carrier, spread_sample};
 use crate::model::parallel::run_parallel;
 use glam::DVec3;
 
@@ -52,7 +52,8 @@ pub(super) fn solve_membrane(
     // With tapering or bending free the deformed fit is the carrier: its deformation is what was
     // asked for, and a membrane on an ellipsoid would make it up instead.
     if !(free.taper || free.bend)
-        && let Some(f) = ellipsoid_carrier(unit, starts, global.sigma2, &global.lm)
+        && let Some(f) =
+            ellipsoid_carrier(unit, starts, global.sigma2, &global.lm, ctx.opts.coverage)
     {
         let p = f.pose;
         carriers.push(ModelState::new(tess, p.translation, p.rotation, p.shape));

@@ -2,7 +2,7 @@
 //! detail is.
 
 use crate::model::fem::Tessellation;
-use crate::model::forces::nearest::NodeGrid;
+use crate::model::nearest::NodeGrid;
 use glam::DVec3;
 
 /// The finest tessellation [`joint_k`] chooses: k = 101 (10 203 nodes).

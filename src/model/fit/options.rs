@@ -16,7 +16,7 @@ pub const MIN_POINTS: usize = 10;
 /// How a fit reaches the rest state of its global DOFs.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum Solver {
-    /// Solved for: the superquadric by Levenberg–Marquardt ([`crate::model::lm::solve`]); with local DOFs, then
+    /// Solved for: the superquadric by Levenberg–Marquardt ([`crate::model::fit::solve`]); with local DOFs, then
     /// the membrane by linear solves for fixed attachments
     /// ([`super::implicit_joint_options`]).
     #[default]

@@ -3,9 +3,9 @@
 
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
-use crate::model::forces::nearest::kd_tree;
 use crate::model::init::{InitialPose, Normalization};
 use crate::model::lm::{DeformedPose, deformed_distances};
+use crate::model::nearest::kd_tree;
 use glam::DVec3;
 use kiddo::SquaredEuclidean;
 use std::num::NonZero;

@@ -369,7 +369,7 @@ fn a_cloud_past_twice_fine_points_fits_with_local_dofs_on_a_spread_of_them() {
         e1: 0.7,
         e2: 1.2,
     };
-    let n = 2 * crate::model::lm::FINE_POINTS + 5000;
+    let n = 2 * super::FINE_POINTS + 5000;
     let points = superquadric_cloud(
         &shape,
         DVec3::new(3.0, -1.0, 2.0),

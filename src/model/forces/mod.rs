@@ -1,5 +1,4 @@
 //! Applied forces (section V): data turned into point forces on the model's surface.
 
 pub mod image;
-pub mod nearest;
 pub mod range;

@@ -8,7 +8,7 @@
 //!
 //! **Points of influence.** [`InfluenceMode::NearestNode`] is the paper's: u_r is the node nearest
 //! r, found again every N steps. The paper did that by brute force in O(mn); [`nearest_indices`]
-//! buckets the nodes into a uniform grid ([`super::nearest::NodeGrid`], O(n)) and scans the cells
+//! buckets the nodes into a uniform grid ([`crate::model::nearest::NodeGrid`], O(n)) and scans the cells
 //! around each point, with a k-d tree (kiddo, O(log n) a query) behind it for points far from
 //! every node, and gives the same assignment as [`nearest_indices_brute`] (tested);
 //! [`RangeForces`] searches its points in a spatial order fixed once ([`QueryOrder`]), which
@@ -63,8 +63,8 @@
 
 use crate::model::dynamics::{ModelSurface, NodalForces};
 use crate::model::fem::{ElementPoint, Tessellation};
-use crate::model::forces::nearest::{kd_tree, query_nearest};
-pub use crate::model::forces::nearest::{nearest_indices, nearest_indices_brute};
+use crate::model::nearest::{kd_tree, query_nearest};
+pub use crate::model::nearest::{nearest_indices, nearest_indices_brute};
 use crate::model::simd::with_avx2;
 use crate::model::superquadric::Trig;
 use glam::DVec3;

@@ -21,8 +21,8 @@
 use super::NUM_UNKNOWNS;
 use super::engine::Normal;
 use crate::model::fem::Tessellation;
-use crate::model::forces::nearest::kd_tree;
 use crate::model::init::InitialPose;
+use crate::model::nearest::kd_tree;
 use crate::model::superquadric::{SignedPowers, Trig, jacobian_from_powers};
 use glam::{DMat3, DVec3};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};

@@ -217,7 +217,7 @@ fn seed_rays(p: &DeformedPose, ys: &[DVec3]) -> Vec<DVec3> {
             p.deformation.apply(*v / g.value, axes.z)
         })
         .collect();
-    crate::model::forces::nearest::nearest_indices(&surface, ys)
+    crate::model::nearest::nearest_indices(&surface, ys)
         .into_iter()
         .map(|i| rays[i as usize])
         .collect()

@@ -8,7 +8,7 @@
 //! of separate pieces of surface (a model made of several shells) is first joined where the
 //! pieces come nearest, so that every pair of touching shells can still be judged as one part.
 
-use crate::model::forces::nearest::kd_tree;
+use crate::model::nearest::kd_tree;
 use glam::DVec3;
 use kiddo::SquaredEuclidean;
 use std::cmp::Ordering;

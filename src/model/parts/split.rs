@@ -34,13 +34,13 @@ use super::merge::{Assembly, PIECE_K};
 use crate::model::distance::normal_distance;
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
+use crate::model::fit::spread_sample;
 use crate::model::fit::{
     FitError, FitOptions, FitReport, Initialization, MIN_POINTS, bounding_diagonal, fit_lean,
     fit_on, validate_points,
 };
-use crate::model::forces::nearest::kd_tree;
 use crate::model::init::InitialPose;
-use crate::model::lm::spread_sample;
+use crate::model::nearest::kd_tree;
 use crate::model::noise::estimate_noise;
 use crate::model::parallel::run_parallel;
 use glam::DVec3;

@@ -35,8 +35,8 @@
 //! Both searches end with the surface distance ([`Metric::Surface`]); the kept fit is then
 //! polished on every point (on [`FINE_POINTS`] of a larger cloud) for [`FINE_ROUNDS`] rounds.
 
-use super::{Coverage, LmFit, LmOptions, Metric, Mixture, fit_em, fit_em_with};
 use crate::model::init::InitialPose;
+use crate::model::lm::{Coverage, LmFit, LmOptions, Metric, Mixture, fit_em, fit_em_with};
 use crate::model::parallel::run_parallel;
 use glam::DVec3;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -96,13 +96,13 @@ pub fn spread_sample(points: &[DVec3], count: usize) -> Vec<DVec3> {
 /// 0.1 % (hippo scan: 1.760e-2 with two, 1.761e-2 with 17) at 2.3 times the cost.
 pub const FINE_ROUNDS: u32 = 2;
 
-/// [`Mixture::score`] of the [`super::super::distance::normal_distance`]s of `points` from
+/// [`Mixture::score`] of the [`crate::model::distance::normal_distance`]s of `points` from
 /// `pose`: how the searches rank starts, placed fits and candidates. One gauge a point, and the
 /// surface distance to first order, so comparable between fits whatever their weights or metric.
 pub fn score(pose: &InitialPose, points: &[DVec3], mixture: &Mixture) -> f64 {
     let d: Vec<f64> = points
         .iter()
-        .map(|p| super::super::distance::normal_distance(pose, *p))
+        .map(|p| crate::model::distance::normal_distance(pose, *p))
         .collect();
     mixture.score(&d)
 }
@@ -112,7 +112,7 @@ pub fn score(pose: &InitialPose, points: &[DVec3], mixture: &Mixture) -> f64 {
 fn surface_score(pose: &InitialPose, points: &[DVec3], mixture: &Mixture) -> f64 {
     let d: Vec<f64> = points
         .iter()
-        .map(|p| super::super::distance::surface_distance(pose, *p))
+        .map(|p| crate::model::distance::surface_distance(pose, *p))
         .collect();
     mixture.score(&d)
 }
@@ -220,7 +220,7 @@ fn switch(
 /// most a hundredth of the σ floor's (its inliers within a tenth of the floor, where every EM
 /// fit stops), and it counts at least the prior's share of the `n` points as inliers. No other
 /// minimum then explains the points better, and [`solve`] does not search further.
-pub(super) fn passes_through(fit: &LmFit, n: usize, mixture: &Mixture) -> bool {
+pub(crate) fn passes_through(fit: &LmFit, n: usize, mixture: &Mixture) -> bool {
     let inliers = if fit.weights.is_empty() {
         n as f64
     } else {
@@ -240,6 +240,8 @@ struct Search<'a> {
     opts: &'a LmOptions,
     candidates: &'a (dyn Fn(&InitialPose) -> Vec<InitialPose> + Sync),
     max_switches: u32,
+    /// The [`Coverage`] density the placing runs with.
+    coverage: f64,
 }
 
 /// The search from the starts (see the module docs), ending with the surface distance.
@@ -275,7 +277,7 @@ fn search_from_starts(s: &Search) -> Option<(Scored, u32)> {
 fn placed_search(s: &Search, stop: &AtomicBool) -> Option<(Scored, u32)> {
     let stopped = || stop.load(Ordering::Relaxed);
     let points = s.points;
-    let coverage = Coverage::new(points, crate::model::forces::range::DEFAULT_COVERAGE);
+    let coverage = Coverage::new(points, s.coverage);
     let placing = LmOptions {
         metric: Metric::Normal,
         tolerance: PLACING_TOLERANCE,
@@ -339,7 +341,8 @@ fn placed_search(s: &Search, stop: &AtomicBool) -> Option<(Scored, u32)> {
 /// that lie on a surface, away from the outliers): the two searches
 /// side by side on [`coarse_sample`]`(all_points)` with `opts` (each phase sets its own
 /// metric: the options' is not used), from inlier variance `sigma2`, each trying the `candidates` of its
-/// fits (similarity candidates) at most `max_switches` times; the fit that explains the
+/// fits (similarity candidates) at most `max_switches` times, placing with the [`Coverage`] term
+/// of density `coverage` (the fit's [`super::FitOptions::coverage`]); the fit that explains the
 /// subsample better by [`Mixture::score`] of its surface distances (the first search's on a tie), then polished for at most
 /// [`FINE_ROUNDS`] rounds on every point (on [`FINE_POINTS`] of them spread through a larger
 /// cloud; [`LmFit::weights`] are then those points', and [`LmFit::converged`] says whether the
@@ -351,6 +354,7 @@ pub fn solve(
     opts: &LmOptions,
     candidates: impl Fn(&InitialPose) -> Vec<InitialPose> + Sync,
     max_switches: u32,
+    coverage: f64,
 ) -> Option<Solution> {
     let sample = coarse_sample(all_points);
     let opts = &LmOptions {
@@ -365,6 +369,7 @@ pub fn solve(
         opts,
         candidates: &candidates,
         max_switches,
+        coverage,
     };
     // The two searches side by side; the second gives up when the first passes through its
     // inliers.
@@ -452,7 +457,7 @@ pub fn solve_lean(
 
 /// The carrier a fit with local DOFs may start its membrane from instead of the fitted
 /// superquadric: an ellipsoid (exponents held at the starts', 1 for moments starts) placed from
-/// each of `starts` with the [`Coverage`] term and then fitted without it, the one nearest the
+/// each of `starts` with the [`Coverage`] term of density `coverage` and then fitted without it, the one nearest the
 /// points of [`coarse_sample`]`(all_points)` by [`Mixture::score`]. A superquadric fitted
 /// alone can take exponents near their bounds (a box, an octahedron) whose tessellation crowds
 /// its nodes onto edges and corners, and a membrane on it reaches the points badly; a rounder
@@ -462,10 +467,11 @@ pub fn ellipsoid_carrier(
     starts: &[InitialPose],
     sigma2: f64,
     opts: &LmOptions,
+    coverage: f64,
 ) -> Option<LmFit> {
     let sample = coarse_sample(all_points);
     let points = &sample[..];
-    let coverage = Coverage::new(points, crate::model::forces::range::DEFAULT_COVERAGE);
+    let coverage = Coverage::new(points, coverage);
     let placing = LmOptions {
         metric: Metric::Normal,
         tolerance: PLACING_TOLERANCE,
@@ -496,3 +502,6 @@ pub fn ellipsoid_carrier(
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .map(|f| f.0)
 }
+
+#[cfg(test)]
+mod tests;

@@ -148,7 +148,7 @@ impl<'a> NodeGrid<'a> {
     /// For every query, the index of the nearest node ([`NodeGrid::nearest`]), in a build for
     /// AVX2 where the processor has it.
     /// Queries go to the k-d tree directly while the previous query's nearest node was more
-    /// than [`FAR_CELLS`] cells away: in a spatial order ([`super::range::QueryOrder`])
+    /// than [`FAR_CELLS`] cells away: in a spatial order ([`crate::model::forces::range::QueryOrder`])
     /// consecutive queries are near each other, and a query that far from the nodes would scan
     /// a large block of mostly empty cells.
     pub fn nearest_each(&self, queries: &[DVec3]) -> Vec<u32> {
