@@ -132,32 +132,30 @@ struct Tally {
 
 impl Tally {
     fn print(&self, set: SweepSet) {
-        let within = |v: &[f64]| v.iter().filter(|&&r| r <= 1.1).count();
-        println!(
-            "{}: truth worst {:.5}, median {:.5}; ÷ floor worst {:.2}, median {:.3}, ≤ 1.1 on {} of {}, > 1.5 on {}; median {:.0} ms",
-            set.name(),
-            worst(&self.truth),
-            median(self.truth.clone()),
-            worst(&self.floor),
-            median(self.floor.clone()),
-            within(&self.floor),
-            self.floor.len(),
-            self.floor.iter().filter(|&&r| r > 1.5).count(),
-            median(self.ms.clone()),
-        );
+        summary(set.name(), &self.truth, &self.floor);
+        println!("    median {:.0} ms", median(self.ms.clone()));
         if !self.other_floor.is_empty() {
-            println!(
-                "{} (other): truth worst {:.5}, median {:.5}; ÷ floor worst {:.2}, median {:.3}, ≤ 1.1 on {} of {}",
-                set.name(),
-                worst(&self.other_truth),
-                median(self.other_truth.clone()),
-                worst(&self.other_floor),
-                median(self.other_floor.clone()),
-                within(&self.other_floor),
-                self.other_floor.len(),
+            summary(
+                &format!("{} (other)", set.name()),
+                &self.other_truth,
+                &self.other_floor,
             );
         }
     }
+}
+
+/// One fitter's line of a set: its truth errors' worst and median, and its inliers ÷ floor.
+fn summary(name: &str, truth: &[f64], floor: &[f64]) {
+    println!(
+        "{name}: truth worst {:.5}, median {:.5}; ÷ floor worst {:.2}, median {:.3}, ≤ 1.1 on {} of {}, > 1.5 on {}",
+        worst(truth),
+        median(truth.to_vec()),
+        worst(floor),
+        median(floor.to_vec()),
+        floor.iter().filter(|&&r| r <= 1.1).count(),
+        floor.len(),
+        floor.iter().filter(|&&r| r > 1.5).count(),
+    );
 }
 
 fn main() -> ExitCode {

@@ -587,17 +587,11 @@ fn distance_to_truth(
 
 #[test]
 fn the_default_pure_fit_lies_on_the_true_surface_among_forty_percent_outliers() {
-    use bevy_deformable_sq::model::fit::CloudOptions;
     use bevy_deformable_sq::synthetic::{OutlierSpread, sweep_cloud};
     // Two clouds of the generated sweep with 40 % outliers, one uniform in a box about a 60 %
     // view, one Gaussian about the whole surface; ranked by their plain mean distance, the
     // searched superquadrics that pass through the outliers won (3–4 % of the diagonal away).
-    let opts = CloudOptions {
-        global_only: true,
-        ..CloudOptions::default()
-    }
-    .resolve(FitOptions::default(), true)
-    .unwrap();
+    let opts = users_pure_options();
     for i in [7, 51] {
         let (recipe, c) = sweep_cloud(i);
         assert_eq!(recipe.outliers, 0.4);
@@ -621,18 +615,13 @@ fn the_default_pure_fit_lies_on_the_true_surface_among_forty_percent_outliers() 
 
 #[test]
 fn heavy_outliers_about_a_partial_view_leave_no_plate() {
-    use bevy_deformable_sq::model::fit::{CloudOptions, surface_distances};
+    use bevy_deformable_sq::model::fit::surface_distances;
     use bevy_deformable_sq::synthetic::{SweepSet, set_cloud};
     // Clouds of the generated `outliers` set (40 % outliers in a Gaussian about a 60 % view)
     // whose fits were plates and boxes through the outliers, 3–9 times farther from the inliers
     // than the truth: the starts were the moments of every point, and a start on the object
     // was pulled into the outliers by a variance wide enough to take them in.
-    let opts = CloudOptions {
-        global_only: true,
-        ..CloudOptions::default()
-    }
-    .resolve(FitOptions::default(), true)
-    .unwrap();
+    let opts = users_pure_options();
     for i in [21, 31] {
         let (_, c) = set_cloud(SweepSet::Outliers, i);
         let inliers = &c.points[..c.points.len() - c.outliers];
@@ -646,4 +635,14 @@ fn heavy_outliers_about_a_partial_view_leave_no_plate() {
             "cloud {i}: inliers {fitted} from the fit, {floor} from the truth"
         );
     }
+}
+
+/// The options `dsq fit CLOUD --global-only` fits a user's cloud with.
+fn users_pure_options() -> FitOptions {
+    bevy_deformable_sq::model::fit::CloudOptions {
+        global_only: true,
+        ..Default::default()
+    }
+    .resolve(FitOptions::default(), true)
+    .unwrap()
 }
