@@ -35,8 +35,9 @@ pub use deformed::{
     DeformedFit, DeformedPose, NUM_DEFORMED, SEED_RAYS, deformed_distances, fit_deformed,
 };
 pub use engine::LmOptions;
-pub(crate) use engine::{Problem, solve_em};
+pub(crate) use engine::{Normal, Problem, normal_equations, solve_em};
 pub use mixture::Mixture;
+pub(crate) use plain::Plain;
 pub use plain::{LmFit, apply_increment, bounded_increment, fit_em, fit_em_with, weighted_cost};
 #[cfg(test)]
 pub(crate) mod tests;

@@ -30,3 +30,4 @@ mod parallel;
 pub mod parts;
 mod simd;
 pub mod superquadric;
+pub mod track;

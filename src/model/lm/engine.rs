@@ -291,7 +291,7 @@ fn hold<const N: usize>(m: &mut [[f64; N]; N], rhs: &mut [f64; N], k: usize) {
 }
 
 /// JᵀWJ (lower triangle) and JᵀWr of the problem's residuals at `model`, each from its foot.
-fn normal_equations<const N: usize, P: Problem<N>>(
+pub(crate) fn normal_equations<const N: usize, P: Problem<N>>(
     problem: &P,
     model: &P::Model,
     weights: &[f64],

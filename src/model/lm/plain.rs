@@ -74,7 +74,7 @@ pub(super) fn on_bound(
 }
 
 /// The plain superquadric fitted to `points` by `metric`'s distance (see the module docs).
-pub(super) struct Plain<'a> {
+pub(crate) struct Plain<'a> {
     points: &'a [DVec3],
     metric: Metric,
     coverage: Option<&'a Coverage>,
@@ -86,7 +86,7 @@ pub(super) struct Plain<'a> {
 impl<'a> Plain<'a> {
     /// The problem of `points` under `opts` (its metric, bounds and held exponents), with the
     /// `coverage` term when given.
-    pub(super) fn new(
+    pub(crate) fn new(
         points: &'a [DVec3],
         opts: &LmOptions,
         coverage: Option<&'a Coverage>,

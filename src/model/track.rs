@@ -1,0 +1,80 @@
+//! Tracking a deformable superquadric through a depth video (beyond the 1991 paper; its
+//! authors' next one, Metaxas & Terzopoulos, PAMI 1993, made the model's dynamics the system
+//! model of a Kalman filter).
+//!
+//! Each frame, the [`Tracker`]:
+//!
+//! 1. **predicts** the state from the last good one: the centre and orientation at constant
+//!    velocity and spin, the shape where it was, the covariance grown by the process noise
+//!    ([`TrackOptions::motion`], [`TrackOptions::turn`], [`TrackOptions::shape_drift`]);
+//! 2. **gates** the frame: the pixels inside the predicted model's bounding sphere, back-projected,
+//!    and kept within three standard deviations of the predicted surface;
+//! 3. **solves a MAP fit** from the prediction: the gated points' distances under the outlier
+//!    mixture, plus the prediction's prior in information form, plus the free space the depth
+//!    image shows ([`problem`]), by the range fit's Levenberg–Marquardt engine;
+//! 4. **updates** the information by the data's JᵀWJ/σ², keeps the labelling of the surface
+//!    nearest the prediction's ([`symmetry`]), and the velocity from the motion.
+//!
+//! A frame whose inliers fall below [`TrackOptions::min_seen`] of the track's usual count is
+//! **lost**: the state stays at the last good frame, its covariance keeps growing, so the gate
+//! widens until the object is found again.
+
+pub mod camera;
+pub mod problem;
+pub mod support;
+pub mod symmetry;
+mod tracker;
+
+pub use camera::{DepthFrame, Intrinsics};
+pub use symmetry::{equivalents, nearest_equivalent, orientation_error};
+pub use tracker::{FLOOR_TOLERANCE, Frame, MIN_TRACK_POINTS, TrackOptions, TrackedFrame, Tracker};
+
+use crate::model::fit::{CloudOptions, FitOptions, fit};
+use crate::model::init::InitialPose;
+
+/// The superquadric to start a track from, fitted to the pixels of `frame` inside the box
+/// [x0, x1) × [y0, y1): the frame's floor found outside the box and its points taken out
+/// ([`support::find_plane`]), then a pure superquadric by the range fit's robust defaults, its
+/// outlier mixture taking what else of the scene the box holds. Errors: a box outside the image
+/// or empty, or too few points in it.
+pub fn initial_pose(frame: &DepthFrame, [x0, y0, x1, y1]: [u32; 4]) -> Result<InitialPose, String> {
+    let c = &frame.intrinsics;
+    if x0 >= x1 || y0 >= y1 || x1 > c.width || y1 > c.height {
+        return Err(format!(
+            "the box {x0},{y0},{x1},{y1} is empty or outside the {}×{} image",
+            c.width, c.height
+        ));
+    }
+    let boxed = (x0 as usize, y0 as usize, x1 as usize, y1 as usize);
+    let mut points: Vec<_> = frame
+        .points_in(boxed, 1)
+        .into_iter()
+        .map(|(p, _)| p)
+        .collect();
+    if points.len() >= MIN_TRACK_POINTS {
+        let centre = points.iter().copied().sum::<glam::DVec3>() / points.len() as f64;
+        let inside = |p: glam::DVec3| {
+            c.project(p).is_some_and(|px| {
+                px.x >= x0 as f64 && px.x < x1 as f64 && px.y >= y0 as f64 && px.y < y1 as f64
+            })
+        };
+        let tolerance = FLOOR_TOLERANCE * centre.z;
+        if let Some(floor) = support::find_plane(frame, inside, centre, tolerance, None, 0) {
+            points.retain(|p| floor.height(*p) > floor.band(tolerance));
+        }
+    }
+    if points.len() < MIN_TRACK_POINTS {
+        return Err(format!(
+            "the box {x0},{y0},{x1},{y1} holds {} pixels with depth; at least {MIN_TRACK_POINTS} are needed",
+            points.len()
+        ));
+    }
+    let opts = CloudOptions {
+        global_only: true,
+        ..CloudOptions::default()
+    }
+    .resolve(FitOptions::default(), true)
+    .map_err(|e| e.to_string())?;
+    let report = fit(&points, &opts, |_| {}).map_err(|e| e.to_string())?;
+    Ok(InitialPose::of(&report.state))
+}
