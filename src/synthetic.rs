@@ -19,10 +19,14 @@ use glam::{DQuat, DVec3};
 use std::f64::consts::{FRAC_PI_2, PI};
 
 mod creature;
+mod depth_video;
 mod sweeps;
 mod union;
 
 pub use creature::{Creature, CreaturePart, creature};
+pub use depth_video::{
+    DEPTH_SCALE, DepthVideo, DepthVideoRecipe, PoseError, VGA, depth_video, tracking_recipe,
+};
 pub use sweeps::{SweepSet, set_cloud, sweep_cloud};
 pub use union::{UnionCloud, union_cloud};
 
