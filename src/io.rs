@@ -5,6 +5,8 @@
 //!   [`MESH_SAMPLES`] points spread uniformly by area over its surface ([`sample_surface`]); a
 //!   file without is a point cloud, read as its vertices.
 //! * [`write_obj`]: a closed triangle mesh.
+//! * [`load_depth_png`], [`load_intrinsics`]: a depth video's frames (16-bit PNG) and its
+//!   camera (Open3D's intrinsics JSON).
 //!
 //! Every error names the file and says what is wrong, with the line where there is one.
 
@@ -14,7 +16,12 @@ use glam::DVec3;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+mod depth;
 mod surface;
+pub use depth::{
+    PRIMESENSE_DEFAULT, decode_depth_png, load_depth_png, load_intrinsics, parse_intrinsics,
+    write_depth_png,
+};
 pub use surface::{MAX_MESH_SAMPLES, MESH_SAMPLES, sample_surface};
 
 /// A file that could not be read as points, or written.
