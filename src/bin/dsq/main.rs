@@ -2,9 +2,10 @@
 //!
 //! ```text
 //! dsq fit (POINTS | --image IMAGE | --scene FILE | --paper egg|mug|pestle|doll) [OPTIONS]
+//! dsq track FRAMES... (--init PARAMS.json | --roi x0,y0,x1,y1) [--intrinsics CAM.json] [OPTIONS]
 //! ```
 //!
-//! `dsq fit --help` lists every option. Progress goes to stderr; stdout gets one JSON line per
+//! `dsq fit --help` and `dsq track --help` list every option. Progress goes to stderr; stdout gets one JSON line per
 //! fitted part and a summary line last. Bad input exits with code 2 and a one-line message.
 //! It needs no Bevy: `cargo install --path . --no-default-features` gives a working fitter
 //! (only `--app`, which runs the fit through the plugin, needs the `bevy` feature).
@@ -12,6 +13,7 @@
 mod args;
 mod batch;
 mod fit;
+mod track;
 
 use clap::error::ErrorKind;
 use clap::{Parser, Subcommand};
@@ -32,6 +34,9 @@ enum Command {
     /// Fit a model to a point cloud (OBJ or PLY), the parts of an image, every part of a scene
     /// file, or one of the paper's experiments, and print the fit as JSON lines.
     Fit(Box<args::FitArgs>),
+    /// Follow one superquadric through a depth video (16-bit PNG depth frames or camera-frame
+    /// clouds), starting from a fit or a pixel box, and print one JSON line per frame.
+    Track(Box<track::TrackArgs>),
 }
 
 fn main() -> ExitCode {
@@ -51,6 +56,7 @@ fn main() -> ExitCode {
     };
     let result = match cli.command {
         Command::Fit(a) => a.resolve().and_then(|(a, points)| fit::run(a, points)),
+        Command::Track(a) => track::run(*a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
