@@ -21,6 +21,7 @@
 
 pub mod camera;
 pub mod problem;
+mod region;
 pub mod support;
 pub mod symmetry;
 mod tracker;
@@ -34,9 +35,9 @@ use crate::model::init::InitialPose;
 
 /// The superquadric to start a track from, fitted to the pixels of `frame` inside the box
 /// [x0, x1) × [y0, y1): the frame's floor found outside the box and its points taken out
-/// ([`support::find_plane`]), then a pure superquadric by the range fit's robust defaults, its
-/// outlier mixture taking what else of the scene the box holds. Errors: a box outside the image
-/// or empty, or too few points in it.
+/// ([`support::find_plane`]), the piece of continuous surface that fills the box's middle kept
+/// (what lies behind or beside the object dropped), then a pure superquadric by the range fit's
+/// robust defaults. Errors: a box outside the image or empty, or too few points in it.
 pub fn initial_pose(frame: &DepthFrame, [x0, y0, x1, y1]: [u32; 4]) -> Result<InitialPose, String> {
     let c = &frame.intrinsics;
     if x0 >= x1 || y0 >= y1 || x1 > c.width || y1 > c.height {
@@ -46,26 +47,29 @@ pub fn initial_pose(frame: &DepthFrame, [x0, y0, x1, y1]: [u32; 4]) -> Result<In
         ));
     }
     let boxed = (x0 as usize, y0 as usize, x1 as usize, y1 as usize);
-    let mut points: Vec<_> = frame
-        .points_in(boxed, 1)
-        .into_iter()
-        .map(|(p, _)| p)
-        .collect();
-    if points.len() >= MIN_TRACK_POINTS {
-        let centre = points.iter().copied().sum::<glam::DVec3>() / points.len() as f64;
-        let inside = |p: glam::DVec3| {
-            c.project(p).is_some_and(|px| {
-                px.x >= x0 as f64 && px.x < x1 as f64 && px.y >= y0 as f64 && px.y < y1 as f64
-            })
-        };
-        let tolerance = FLOOR_TOLERANCE * centre.z;
-        if let Some(floor) = support::find_plane(frame, inside, centre, tolerance, None, 0) {
-            points.retain(|p| floor.height(*p) > floor.band(tolerance));
-        }
+    let inside = |p: glam::DVec3| {
+        c.project(p).is_some_and(|px| {
+            px.x >= x0 as f64 && px.x < x1 as f64 && px.y >= y0 as f64 && px.y < y1 as f64
+        })
+    };
+    let in_box: Vec<_> = frame.points_in(boxed, 1);
+    let mut floor = None;
+    if in_box.len() >= MIN_TRACK_POINTS {
+        let centre = in_box.iter().map(|(p, _)| *p).sum::<glam::DVec3>() / in_box.len() as f64;
+        floor = support::find_plane(frame, inside, centre, FLOOR_TOLERANCE * centre.z, None, 0);
     }
+    // Off the floor, a depth jump wider than a steep surface's step between pixels (a surface
+    // at 80° to the ray steps 6 pixel footprints) plus three times the noise of a difference.
+    let footprint = 2.0 / (c.fx + c.fy);
+    let noise = floor
+        .map_or(0.0, |f| f.noise)
+        .max(region::step_noise(frame, boxed));
+    let jump = |z: f64| 6.0 * footprint * z + 3.0 * std::f64::consts::SQRT_2 * noise;
+    let above = |p: glam::DVec3| floor.is_none_or(|f| f.height(p) > f.band(FLOOR_TOLERANCE * p.z));
+    let points = region::object_region(frame, boxed, above, jump);
     if points.len() < MIN_TRACK_POINTS {
         return Err(format!(
-            "the box {x0},{y0},{x1},{y1} holds {} pixels with depth; at least {MIN_TRACK_POINTS} are needed",
+            "the box {x0},{y0},{x1},{y1} holds {} pixels of an object off the floor; at least {MIN_TRACK_POINTS} are needed",
             points.len()
         ));
     }
