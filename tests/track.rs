@@ -111,6 +111,22 @@ fn a_box_is_found_from_a_pixel_box_and_followed() {
 }
 
 #[test]
+fn a_box_seen_from_one_side_starts_as_a_box_not_a_plate() {
+    // Video 18: a box whose pure range fit from the first frame alone is a plate through its
+    // visible faces; the image's free space and floor pick the box.
+    let video = depth_video(&tracking_recipe(18));
+    let start = initial_pose(&video.depth_frame(0), video.roi(0)).unwrap();
+    let e = PoseError::of(&video.truth[0], &start);
+    assert!(
+        e.centre < 10e-3 && e.axes < 10e-3 && e.angle < 0.05,
+        "{:.2} mm, semi-axes {:.2} mm, {:.3} rad",
+        e.centre * 1e3,
+        e.axes * 1e3,
+        e.angle
+    );
+}
+
+#[test]
 fn a_track_is_lost_on_empty_frames_and_found_again() {
     let video = video();
     let mut tracker = Tracker::new(video.truth[0], TrackOptions::default()).unwrap();

@@ -50,6 +50,9 @@ pub fn equivalents(pose: &InitialPose) -> Vec<InitialPose> {
         .into_iter()
         .filter(|(_, perm)| any_axis || perm[2] == 2)
         .map(|(m, perm)| {
+            if m == DMat3::IDENTITY {
+                return *pose;
+            }
             let shape = SuperquadricParams {
                 a: 1.0,
                 a1: axes[perm[0]],
@@ -150,10 +153,11 @@ mod tests {
     fn the_nearest_labelling_follows_the_reference() {
         let p = pose(0.3, 0.3);
         for e in equivalents(&p) {
+            // Angles from acos near 1 resolve to about √ε ≈ 1e-8.
             let back = nearest_equivalent(&e, p.rotation);
-            assert!(back.rotation.angle_between(p.rotation) < 1e-9);
+            assert!(back.rotation.angle_between(p.rotation) < 1e-6);
             assert!((back.shape.semi_axes() - p.shape.semi_axes()).length() < 1e-9);
-            assert!(orientation_error(&p, &e) < 1e-9);
+            assert!(orientation_error(&p, &e) < 1e-6);
         }
         let mut turned = p;
         turned.rotation = p.rotation * DQuat::from_rotation_x(0.02);
