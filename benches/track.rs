@@ -20,12 +20,15 @@
 //! - frames showing at least a fifth of the surface: centre ≤ 6 mm and angle ≤ 0.03 rad;
 //! - after the first 10 frames, semi-axes within 2 mm;
 //! - the largest jump of the centre between frames beyond the object's own motion;
+//! - orientation flips: good frames whose orientation turned 0.25 rad more than the truth's;
 //! - the tracking time per frame (the frame's decoding excluded) against the points it took.
 //!
 //! `cargo test` runs one short video and fails when a figure is not finite.
 
 use bevy_deformable_sq::io::write_depth_png;
-use bevy_deformable_sq::model::track::{Frame, TrackOptions, Tracker, initial_pose};
+use bevy_deformable_sq::model::track::{
+    Frame, TrackOptions, Tracker, free_axis, initial_pose, nearest_axis_angle,
+};
 use bevy_deformable_sq::synthetic::{
     DEPTH_SCALE, DepthVideoRecipe, PoseError, depth_video, tracking_recipe,
 };
@@ -39,6 +42,7 @@ struct Row {
     worst_fifth: (f64, f64),
     worst_axes: f64,
     worst_jump: f64,
+    flips: usize,
     lost: usize,
     seconds: f64,
     points: usize,
@@ -61,12 +65,14 @@ fn track(recipe: &DepthVideoRecipe, from_truth: bool, verbose: bool) -> Result<R
         worst_fifth: (0.0, 0.0),
         worst_axes: 0.0,
         worst_jump: 0.0,
+        flips: 0,
         lost: 0,
         seconds: 0.0,
         points: 0,
         frames: 0,
     };
     let mut last: Option<glam::DVec3> = None;
+    let mut last_turn: Option<(glam::DQuat, glam::DQuat)> = None;
     for i in 0..video.frames.len() {
         let frame = Frame::Depth(video.depth_frame(i));
         let start = Instant::now();
@@ -96,6 +102,34 @@ fn track(recipe: &DepthVideoRecipe, from_truth: bool, verbose: bool) -> Result<R
             if i >= 10 {
                 row.worst_axes = row.worst_axes.max(e.axes);
             }
+        }
+        // A flip: the reported orientation turns between good frames by more than the truth
+        // did plus 0.25 rad (another labelling is at least a quarter turn away); where the
+        // truth turns freely about an axis, only the fit's axis nearest it counts.
+        if !out.lost {
+            let (fit, truth) = (out.pose.rotation, video.truth[i].rotation);
+            let free = free_axis(&video.truth[i]);
+            let turn = |a: glam::DQuat, b: glam::DQuat| match free {
+                Some(axis) => {
+                    let k = [glam::DVec3::X, glam::DVec3::Y, glam::DVec3::Z]
+                        .into_iter()
+                        .max_by(|x, y| {
+                            (a * *x)
+                                .dot(axis)
+                                .abs()
+                                .total_cmp(&(a * *y).dot(axis).abs())
+                        })
+                        .unwrap_or(glam::DVec3::Z);
+                    nearest_axis_angle(a * k, b)
+                }
+                None => a.angle_between(b),
+            };
+            if let Some((f0, t0)) = last_turn
+                && turn(f0, fit) > turn(t0, truth) + 0.25
+            {
+                row.flips += 1;
+            }
+            last_turn = Some((fit, truth));
         }
         if let Some(prev) = last {
             let moved = (video.truth[i].translation - video.truth[i - 1].translation).length();
@@ -181,7 +215,7 @@ fn main() -> ExitCode {
     let list: Vec<usize> = only.map_or((0..videos).collect(), |i| vec![i]);
     let mut all = Vec::new();
     println!(
-        "video  whole ok  fifth ok  worst whole (mm, °)  worst fifth (mm, rad)  axes mm  jump mm  lost  ms/frame  points"
+        "video  whole ok  fifth ok  worst whole (mm, °)  worst fifth (mm, rad)  axes mm  jump mm  flips  lost  ms/frame  points"
     );
     for i in list {
         let mut recipe = tracking_recipe(i);
@@ -196,7 +230,7 @@ fn main() -> ExitCode {
             }
         };
         println!(
-            "{i:5}  {:3}/{:<3}  {:3}/{:<3}  {:6.2} {:6.3}        {:6.2} {:6.4}          {:6.2}  {:6.2}  {:4}  {:8.2}  {:6}",
+            "{i:5}  {:3}/{:<3}  {:3}/{:<3}  {:6.2} {:6.3}        {:6.2} {:6.4}          {:6.2}  {:6.2}  {:5}  {:4}  {:8.2}  {:6}",
             row.whole.0,
             row.whole.1,
             row.fifth.0,
@@ -207,6 +241,7 @@ fn main() -> ExitCode {
             row.worst_fifth.1,
             row.worst_axes * 1e3,
             row.worst_jump * 1e3,
+            row.flips,
             row.lost,
             row.seconds / row.frames as f64 * 1e3,
             row.points / row.frames.max(1)
@@ -235,13 +270,14 @@ fn main() -> ExitCode {
         sum(&|r| r.fifth.1)
     );
     println!(
-        "worst  whole {:.2} mm {:.3}°; fifth {:.2} mm {:.4} rad; axes after 10 frames {:.2} mm; jump {:.2} mm; lost {}; {:.2} ms a frame for {} points",
+        "worst  whole {:.2} mm {:.3}°; fifth {:.2} mm {:.4} rad; axes after 10 frames {:.2} mm; jump {:.2} mm; flips {}; lost {}; {:.2} ms a frame for {} points",
         max(&|r| r.worst_whole.0) * 1e3,
         max(&|r| r.worst_whole.1).to_degrees(),
         max(&|r| r.worst_fifth.0) * 1e3,
         max(&|r| r.worst_fifth.1),
         max(&|r| r.worst_axes) * 1e3,
         max(&|r| r.worst_jump) * 1e3,
+        sum(&|r| r.flips),
         sum(&|r| r.lost),
         all.iter().map(|r| r.seconds).sum::<f64>() / sum(&|r| r.frames).max(1) as f64 * 1e3,
         sum(&|r| r.points) / sum(&|r| r.frames).max(1)

@@ -29,5 +29,7 @@ mod tracker;
 
 pub use camera::{DepthFrame, Intrinsics};
 pub use start::initial_pose;
-pub use symmetry::{equivalents, nearest_equivalent, orientation_error};
+pub use symmetry::{
+    axisymmetric, equivalents, free_axis, nearest_axis_angle, nearest_equivalent, orientation_error,
+};
 pub use tracker::{FLOOR_TOLERANCE, Frame, MIN_TRACK_POINTS, TrackOptions, TrackedFrame, Tracker};

@@ -84,26 +84,42 @@ pub fn nearest_equivalent(pose: &InitialPose, reference: DQuat) -> InitialPose {
 }
 
 /// Whether a shape turns freely about its z axis (a circular section: a1 = a2 within 5 % and
-/// ε2 = 1 within [`EQUAL_EXPONENTS`]).
-fn axisymmetric(q: &SuperquadricParams) -> bool {
+/// ε2 = 1 within [`EQUAL_EXPONENTS`]): its turn about z is then not part of its orientation.
+pub fn axisymmetric(q: &SuperquadricParams) -> bool {
     (q.a1 - q.a2).abs() <= 0.05 * q.a1.max(q.a2) && (q.e2 - 1.0).abs() <= EQUAL_EXPONENTS
 }
 
-/// The angle between `fit`'s orientation and the nearest of `truth`'s labellings; only the z
-/// axes are compared where the truth turns freely about z (for an ellipsoid of revolution,
-/// whichever its axis). Whether the fit's semi-axes match that labelling's is the semi-axes'
-/// error, not this one.
+/// The world direction of the axis `pose`'s shape turns freely about, when one of its
+/// labellings is [`axisymmetric`] (for an ellipsoid, whichever pair of semi-axes is equal).
+pub fn free_axis(pose: &InitialPose) -> Option<DVec3> {
+    equivalents(pose)
+        .iter()
+        .find(|e| axisymmetric(&e.shape))
+        .map(|e| e.rotation * DVec3::Z)
+}
+
+/// The angle between `axis` and the nearest of `rotation`'s three axes, either way along it.
+pub fn nearest_axis_angle(axis: DVec3, rotation: DQuat) -> f64 {
+    [DVec3::X, DVec3::Y, DVec3::Z]
+        .into_iter()
+        .map(|k| {
+            let a = axis.angle_between(rotation * k);
+            a.min(std::f64::consts::PI - a)
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// The angle between `fit`'s orientation and the nearest of `truth`'s labellings. Where the
+/// truth turns freely about an axis ([`free_axis`]), only that axis counts, against the fit's
+/// axis nearest it. Whether the fit's semi-axes match that labelling's is the semi-axes' error,
+/// not this one.
 pub fn orientation_error(truth: &InitialPose, fit: &InitialPose) -> f64 {
+    if let Some(axis) = free_axis(truth) {
+        return nearest_axis_angle(axis, fit.rotation);
+    }
     equivalents(truth)
         .iter()
-        .map(|e| {
-            if axisymmetric(&e.shape) {
-                let (a, b) = (e.rotation * DVec3::Z, fit.rotation * DVec3::Z);
-                a.angle_between(b)
-            } else {
-                e.rotation.angle_between(fit.rotation)
-            }
-        })
+        .map(|e| e.rotation.angle_between(fit.rotation))
         .fold(f64::INFINITY, f64::min)
 }
 
@@ -162,5 +178,22 @@ mod tests {
         let mut turned = p;
         turned.rotation = p.rotation * DQuat::from_rotation_x(0.02);
         assert!((orientation_error(&p, &turned) - 0.02).abs() < 1e-9);
+        // An ellipsoid with two equal semi-axes turns freely about the third, whichever it is:
+        // a turn about it is no error, a tilt of it is.
+        let mut spheroid = pose(1.0, 1.0);
+        spheroid.shape.a2 = spheroid.shape.a3;
+        let axis = free_axis(&spheroid).expect("a spheroid turns freely");
+        assert!(nearest_axis_angle(axis, spheroid.rotation * DQuat::from_rotation_x(0.0)) < 1e-6);
+        let mut spun = spheroid;
+        spun.rotation =
+            spheroid.rotation * DQuat::from_axis_angle(spheroid.rotation.inverse() * axis, 0.7);
+        assert!(orientation_error(&spheroid, &spun) < 1e-6);
+        let mut tilted = spheroid;
+        tilted.rotation = spheroid.rotation
+            * DQuat::from_axis_angle(
+                (spheroid.rotation.inverse() * axis).any_orthonormal_vector(),
+                0.1,
+            );
+        assert!((orientation_error(&spheroid, &tilted) - 0.1).abs() < 1e-6);
     }
 }
