@@ -16,8 +16,8 @@ pub const PRIMESENSE_DEFAULT: Intrinsics = Intrinsics {
 };
 
 /// Reads the JSON Open3D writes for a `PinholeCameraIntrinsic`: `width`, `height` and
-/// `intrinsic_matrix`, the 3×3 matrix K in column-major order (f_x = m[0], f_y = m[4],
-/// c_x = m[6], c_y = m[7]). The message names the field that is missing or wrong.
+/// `intrinsic_matrix`, the 3×3 matrix K in column-major order (`f_x = m[0]`, `f_y = m[4]`,
+/// `c_x = m[6]`, `c_y = m[7]`). The message names the field that is missing or wrong.
 pub fn load_intrinsics(path: &Path) -> Result<Intrinsics, IoError> {
     if path.is_dir() {
         return Err(err(path, "is a directory, not camera intrinsics"));
