@@ -18,11 +18,13 @@ use std::path::{Path, PathBuf};
 
 mod depth;
 mod surface;
+mod track;
 pub use depth::{
     PRIMESENSE_DEFAULT, decode_depth_png, load_depth_png, load_intrinsics, parse_intrinsics,
     write_depth_png,
 };
 pub use surface::{MAX_MESH_SAMPLES, MESH_SAMPLES, sample_surface};
+pub use track::{pose_from_json, track_line};
 
 /// A file that could not be read as points, or written.
 #[derive(Debug, Clone, PartialEq)]

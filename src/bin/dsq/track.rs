@@ -1,11 +1,11 @@
 //! `dsq track`: one superquadric followed through a depth video (`model::track`).
 
-use bevy_deformable_sq::io::{load_depth_png, load_intrinsics, load_points, write_model_obj};
+use bevy_deformable_sq::io::{
+    load_depth_png, load_intrinsics, load_points, pose_from_json, track_line, write_model_obj,
+};
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
-use bevy_deformable_sq::model::frame::{quat_from_paper, quat_to_paper};
 use bevy_deformable_sq::model::init::InitialPose;
-use bevy_deformable_sq::model::superquadric::SuperquadricParams;
 use bevy_deformable_sq::model::track::{
     DepthFrame, Frame, Intrinsics, TrackOptions, TrackedFrame, Tracker, initial_pose,
 };
@@ -169,18 +169,12 @@ pub fn run(args: TrackArgs) -> Result<(), String> {
     Ok(())
 }
 
-/// One frame's line: the pose and shape as `dsq fit` gives them, and the frame's figures.
+/// One frame's line: the library's ([`track_line`]) with the file and the time.
 fn frame_line(i: usize, path: &Path, out: &TrackedFrame, ms: f64) -> serde_json::Value {
-    let p = &out.pose;
-    let s = &p.shape;
-    serde_json::json!({
-        "frame": i, "file": path.display().to_string(),
-        "translation": p.translation.to_array(), "rotation": quat_to_paper(p.rotation),
-        "a": s.a, "a1": s.a1, "a2": s.a2, "a3": s.a3, "e1": s.e1, "e2": s.e2,
-        "lost": out.lost, "points": out.points, "inliers": out.inliers,
-        "free_rays": out.free_rays, "rms": out.rms, "iterations": out.iterations,
-        "ms": (ms * 1e3).round() / 1e3,
-    })
+    let mut line = track_line(i, out);
+    line["file"] = path.display().to_string().into();
+    line["ms"] = ((ms * 1e3).round() / 1e3).into();
+    line
 }
 
 /// `--roi x0,y0,x1,y1`.
@@ -248,28 +242,7 @@ fn read_init(path: &Path) -> Result<InitialPose, String> {
     let text = std::fs::read_to_string(path).map_err(|e| at(format!("cannot read: {e}")))?;
     let v: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| at(format!("not JSON: {e}")))?;
-    let numbers = |name: &str, n: usize| -> Result<Vec<f64>, String> {
-        let field = v.get(name).ok_or_else(|| at(format!("no `{name}`")))?;
-        let list: Vec<f64> = match field.as_array() {
-            Some(a) => a.iter().filter_map(serde_json::Value::as_f64).collect(),
-            None => field.as_f64().into_iter().collect(),
-        };
-        if list.len() != n || list.iter().any(|x| !x.is_finite()) {
-            return Err(at(format!("`{name}` must be {n} finite number(s)")));
-        }
-        Ok(list)
-    };
-    let t = numbers("translation", 3)?;
-    let q = numbers("rotation", 4)?;
-    let one = |name: &str| numbers(name, 1).map(|x| x[0]);
-    let shape = SuperquadricParams {
-        a: one("a")?,
-        a1: one("a1")?,
-        a2: one("a2")?,
-        a3: one("a3")?,
-        e1: one("e1")?,
-        e2: one("e2")?,
-    };
+    let pose = pose_from_json(&v).map_err(at)?;
     for name in ["taper", "bend"] {
         if let Some(d) = v.get(name).and_then(serde_json::Value::as_array)
             && d.iter().any(|x| x.as_f64().is_some_and(|x| x != 0.0))
@@ -280,13 +253,5 @@ fn read_init(path: &Path) -> Result<InitialPose, String> {
             );
         }
     }
-    let rotation = quat_from_paper([q[0], q[1], q[2], q[3]]);
-    if rotation.length() < 1e-9 {
-        return Err(at("`rotation` is not a rotation".into()));
-    }
-    Ok(InitialPose {
-        translation: glam::DVec3::new(t[0], t[1], t[2]),
-        rotation: rotation.normalize(),
-        shape,
-    })
+    Ok(pose)
 }
