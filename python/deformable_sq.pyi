@@ -1,7 +1,8 @@
 """Deformable superquadrics (Terzopoulos & Metaxas, PAMI 1991): fit point clouds and images.
 
 ``fit`` takes an (N, 3) array and the keywords of ``dsq fit``'s flags, and fits the cloud exactly
-as ``dsq fit`` fits the same points. Every fit releases the GIL, so threads fit in parallel. Bad
+as ``dsq fit`` fits the same points; ``track`` follows an object through depth frames as
+``dsq track`` does. Every fit releases the GIL, so threads fit in parallel. Bad
 input raises ``ValueError`` with the one-line message ``dsq`` prints.
 """
 
@@ -184,3 +185,32 @@ def fit_image(
     ``dsq fit --image`` does: solved for each part's rest by default; ``band``, ``region``,
     ``paper_band``, ``free_depth``, ``w0``, ``w1``, ``beta`` and ``max_steps`` set the paper's
     dynamics and need ``solver="dynamics"``."""
+
+class Track:
+    """A track in progress: iterating it tracks the next frame and gives ``dsq track``'s line
+    for it as a dict (``frame``, ``translation``, ``rotation`` [s, v1, v2, v3], ``a``, ``a1``,
+    ``a2``, ``a3``, ``e1``, ``e2``, ``lost``, ``points``, ``inliers``, ``free_rays``, ``rms``,
+    ``iterations``, and ``file`` for a path), without its time."""
+
+    def __iter__(self) -> Track: ...
+    def __next__(self) -> dict[str, Any]: ...
+
+def track(
+    frames: Any,
+    intrinsics: str | PathLike[str] | dict[str, Any] | None = None,
+    *,
+    init: str | PathLike[str] | dict[str, Any] | None = None,
+    roi: Sequence[int] | None = None,
+    depth_scale: float = 0.001,
+    outliers: float = 0.2,
+    fix_epsilon: bool = False,
+    free_space: bool = True,
+    support: bool = True,
+) -> Track:
+    """Follows one object through ``frames`` as ``dsq track`` does, frame by frame as the
+    iterable gives them: 16-bit PNG paths, PLY/OBJ paths (camera-frame clouds), or (H, W)
+    arrays (uint16 in units of ``depth_scale`` metres, any other number type in metres).
+    ``intrinsics`` is Open3D's camera JSON (a path or its dict); by default Open3D's PrimeSense
+    camera (640×480, f = 525). The track starts from ``init`` (a ``dsq fit --out-params`` file,
+    a track's line or its dict) or from a fit inside the pixel box ``roi`` (x0, y0, x1, y1) of
+    the first frame. The same frames give ``dsq track``'s lines, bit for bit."""

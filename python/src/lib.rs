@@ -4,6 +4,7 @@
 //! GIL. Bad input raises `ValueError` with the message `dsq` prints.
 
 mod options;
+mod track;
 
 use bevy_deformable_sq::io::{MESH_SAMPLES, load_points_sampled};
 use bevy_deformable_sq::model::dynamics::ModelState;
@@ -550,6 +551,8 @@ fn deformable_sq(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(load_points, m)?)?;
     m.add_class::<FitResult>()?;
     m.add_class::<ImagePart>()?;
+    m.add_function(wrap_pyfunction!(track::track, m)?)?;
+    m.add_class::<track::Track>()?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

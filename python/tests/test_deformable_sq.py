@@ -312,3 +312,98 @@ def test_fit_parts_splits_two_separate_superquadrics_as_dsq_does(tmp_path):
         d.fit_parts(points, parts=2, max_parts=3)
     with pytest.raises(ValueError, match="parts = 0"):
         d.fit_parts(points, parts=0)
+
+
+def sphere_video(frames, radius=0.06, step=0.004):
+    """A sphere rolling along a floor, seen by Open3D's default camera (640×480, f = 525):
+    depth in millimetres (uint16) per frame, and the true centres."""
+    w, h, f, cx, cy = 640, 480, 525.0, 319.5, 239.5
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    rx, ry = (u - cx) / f, (v - cy) / f
+    floor_y = 0.25  # the floor y = 0.25 m (y down)
+    out, centres = [], []
+    for k in range(frames):
+        c = np.array([-0.05 + step * k, floor_y - radius, 1.0])
+        # |t r - c|² = radius², r = (rx, ry, 1): the nearest root.
+        a = rx * rx + ry * ry + 1.0
+        b = rx * c[0] + ry * c[1] + c[2]
+        disc = b * b - a * (c @ c - radius * radius)
+        t_sphere = np.where(disc > 0, (b - np.sqrt(np.maximum(disc, 0))) / a, np.inf)
+        t_floor = np.where(ry > 1e-9, floor_y / np.maximum(ry, 1e-9), np.inf)
+        t = np.minimum(t_sphere, t_floor)
+        depth = np.where(np.isfinite(t) & (t < 5.0), np.round(t * 1000.0), 0).astype(np.uint16)
+        out.append(depth)
+        centres.append(c)
+    return out, centres
+
+
+def write_png16(path, depth):
+    """`depth` (H×W uint16) as a 16-bit greyscale PNG, by zlib alone."""
+    import struct
+    import zlib
+
+    h, w = depth.shape
+    rows = b"".join(b"\x00" + depth[r].astype(">u2").tobytes() for r in range(h))
+
+    def chunk(kind, data):
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    header = struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0)
+    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows))
+    path.write_bytes(png + chunk(b"IEND", b""))
+    return path
+
+
+def test_track_follows_a_rolling_sphere_as_dsq_track_does(tmp_path):
+    frames, centres = sphere_video(8)
+    roi = [255, 300, 335, 380]  # around the first frame's sphere (u 262–324, v 308–370)
+    results = list(d.track(frames, roi=roi))
+    assert len(results) == 8
+    for r, c in zip(results, centres):
+        assert not r["lost"]
+        assert np.linalg.norm(np.array(r["translation"]) - c) < 0.003, (r["frame"], r["translation"], c)
+        semi = r["a"] * np.array([r["a1"], r["a2"], r["a3"]])
+        assert np.allclose(semi, 0.06, atol=0.004), semi
+
+    # The same frames as PNG files through dsq track give the same lines, bit for bit.
+    paths = [write_png16(tmp_path / f"depth_{k:03}.png", f) for k, f in enumerate(frames)]
+    assert DSQ.exists(), f"{DSQ} not built: cargo build --release --no-default-features --bin dsq"
+    run = subprocess.run(
+        [str(DSQ), "track", "--quiet", "--roi", ",".join(map(str, roi)), *map(str, paths)],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0, run.stderr
+    lines = [json.loads(l) for l in run.stdout.splitlines()]
+    assert lines[-1]["frames"] == 8 and lines[-1]["lost"] == 0
+    from_files = list(d.track(paths, roi=roi))
+    for line, mine, arrays in zip(lines, from_files, results):
+        del line["ms"]
+        assert line == mine
+        del mine["file"]
+        assert mine == arrays
+
+    # Started from a frame's dict, it goes on from there.
+    later = list(d.track(frames[1:], init=results[0]))
+    assert np.linalg.norm(np.array(later[-1]["translation"]) - centres[-1]) < 0.003
+
+
+def test_track_names_bad_input(tmp_path):
+    frames, _ = sphere_video(1)
+    with pytest.raises(ValueError, match="give init"):
+        next(d.track(frames))
+    with pytest.raises(ValueError, match="depth_scale"):
+        d.track(frames, roi=[0, 0, 10, 10], depth_scale=0.0)
+    with pytest.raises(ValueError, match="outside the 640×480 image"):
+        next(d.track(frames, roi=[600, 400, 700, 500]))
+    with pytest.raises(ValueError, match=r"frames\[0\]: an array of shape \[10, 10\]"):
+        next(d.track([np.zeros((10, 10), np.uint16)], roi=[0, 0, 5, 5]))
+    with pytest.raises(ValueError, match="the first frame has no depth"):
+        next(d.track([np.zeros((480, 640), np.uint16)], roi=[0, 0, 5, 5]))
+    with pytest.raises(ValueError, match=r"frames\[0\]: .*missing.png: cannot read"):
+        next(d.track([tmp_path / "missing.png"], roi=[0, 0, 5, 5]))
+    with pytest.raises(ValueError, match="init: no `translation`"):
+        next(d.track(frames, init={"a": 1}))
+    with pytest.raises(ValueError, match="intrinsics: `intrinsic_matrix`"):
+        next(d.track(frames, {"width": 640, "height": 480}, roi=[0, 0, 5, 5]))
