@@ -21,7 +21,7 @@ mod surface;
 mod track;
 pub use depth::{
     PRIMESENSE_DEFAULT, decode_depth_png, load_depth_png, load_intrinsics, parse_intrinsics,
-    write_depth_png,
+    write_depth_png, write_track_png,
 };
 pub use surface::{MAX_MESH_SAMPLES, MESH_SAMPLES, sample_surface};
 pub use track::{pose_from_json, track_line};

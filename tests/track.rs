@@ -201,6 +201,7 @@ fn dsq_track_follows_png_frames_and_agrees_with_the_library_bit_for_bit() {
     assert_eq!(std::fs::read_to_string(&params).unwrap().lines().count(), n);
     for i in 0..n {
         assert!(meshes.join(format!("frame_{i:05}.obj")).exists());
+        assert!(meshes.join(format!("frame_{i:05}.png")).exists());
     }
 
     // The library on the same files gives the same numbers, bit for bit.

@@ -1,6 +1,7 @@
 //! Depth video frames: 16-bit PNG depth images and Open3D's camera intrinsics JSON.
 
 use super::{IoError, err};
+use crate::model::init::InitialPose;
 use crate::model::track::{DepthFrame, Intrinsics};
 use std::path::Path;
 
@@ -137,6 +138,64 @@ pub fn write_depth_png(path: &Path, frame: &DepthFrame, scale: f64) -> Result<()
         .map_err(|e| err(path, format!("cannot write: {e}")))
 }
 
+/// Writes a picture of a tracked frame: the depth as grey (near is bright, over a metre about
+/// the model; no depth black)
+/// with the model of `pose` drawn over it as red dots of the surface that faces the camera.
+pub fn write_track_png(path: &Path, frame: &DepthFrame, pose: &InitialPose) -> Result<(), IoError> {
+    use crate::model::superquadric::{SignedPowers, Trig, shape_from_powers};
+    let c = &frame.intrinsics;
+    // Grey over half a metre either side of the model.
+    let near = (pose.translation.z - 0.5) as f32;
+    let span = 1.0f32;
+    let mut img = image::RgbImage::from_fn(c.width, c.height, |u, v| {
+        let z = frame.depth[(v * c.width + u) as usize];
+        let g = if z > 0.0 {
+            (230.0 - 190.0 * ((z - near) / span).clamp(0.0, 1.0)) as u8
+        } else {
+            0
+        };
+        image::Rgb([g; 3])
+    });
+    let (rings, longitudes) = (256, 512);
+    let mut dots = Vec::with_capacity(rings * longitudes);
+    for i in 0..=rings {
+        let u = -std::f64::consts::FRAC_PI_2 + std::f64::consts::PI * i as f64 / rings as f64;
+        for j in 0..longitudes {
+            let v =
+                -std::f64::consts::PI + 2.0 * std::f64::consts::PI * j as f64 / longitudes as f64;
+            let at = |u: f64, v: f64| {
+                let t = Trig::new(u, v);
+                pose.translation
+                    + pose.rotation
+                        * shape_from_powers(&pose.shape, &SignedPowers::new(&pose.shape, &t))
+            };
+            let p = at(u, v);
+            // The outward normal from neighbouring points of the grid.
+            let (du, dv) = (1e-3, 1e-3);
+            let n = (at(u + du, v) - at(u - du, v)).cross(at(u, v + dv) - at(u, v - dv));
+            let outward = if n.dot(p - pose.translation) >= 0.0 {
+                n
+            } else {
+                -n
+            };
+            let front = outward.dot(p) < 0.0;
+            dots.push((p, front));
+        }
+    }
+    for (p, front) in dots {
+        if !front {
+            continue;
+        }
+        let Some(px) = c.project(p) else { continue };
+        let (x, y) = (px.x.round(), px.y.round());
+        if x >= 0.0 && y >= 0.0 && x < c.width as f64 && y < c.height as f64 {
+            img.put_pixel(x as u32, y as u32, image::Rgb([255, 40, 30]));
+        }
+    }
+    img.save_with_format(path, image::ImageFormat::Png)
+        .map_err(|e| err(path, format!("cannot write: {e}")))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -150,6 +209,51 @@ mod tests {
         .unwrap();
         assert_eq!((c.width, c.height), (640, 480));
         assert_eq!((c.fx, c.fy, c.cx, c.cy), (600.0, 610.0, 320.5, 241.0));
+    }
+
+    #[test]
+    fn a_track_picture_draws_the_model_where_it_projects() {
+        use crate::model::superquadric::SuperquadricParams;
+        let camera = Intrinsics {
+            width: 64,
+            height: 48,
+            fx: 60.0,
+            fy: 60.0,
+            cx: 31.5,
+            cy: 23.5,
+        };
+        let frame = DepthFrame {
+            intrinsics: camera,
+            depth: vec![2.0; 64 * 48],
+        };
+        let pose = InitialPose {
+            translation: glam::DVec3::new(0.2, 0.0, 1.0),
+            rotation: glam::DQuat::IDENTITY,
+            shape: SuperquadricParams {
+                a: 0.1,
+                a1: 1.0,
+                a2: 1.0,
+                a3: 1.0,
+                e1: 1.0,
+                e2: 1.0,
+            },
+        };
+        let path = std::env::temp_dir().join(format!("dsq-track-png-{}.png", std::process::id()));
+        write_track_png(&path, &frame, &pose).unwrap();
+        let img = image::open(&path).unwrap().to_rgb8();
+        std::fs::remove_file(&path).ok();
+        assert_eq!(img.dimensions(), (64, 48));
+        // The sphere of radius 0.1 m at (0.2, 0, 1) covers u ∈ 31.5 + 60·[0.1, 0.3] (about).
+        let red: Vec<(u32, u32)> = img
+            .enumerate_pixels()
+            .filter(|(_, _, p)| p.0 == [255, 40, 30])
+            .map(|(u, v, _)| (u, v))
+            .collect();
+        assert!(red.len() > 50, "{} red pixels", red.len());
+        assert!(
+            red.iter()
+                .all(|&(u, v)| (36..=51).contains(&u) && (16..=31).contains(&v))
+        );
     }
 
     #[test]

@@ -2,6 +2,7 @@
 
 use bevy_deformable_sq::io::{
     load_depth_png, load_intrinsics, load_points, pose_from_json, track_line, write_model_obj,
+    write_track_png,
 };
 use bevy_deformable_sq::model::dynamics::ModelState;
 use bevy_deformable_sq::model::fem::Tessellation;
@@ -49,7 +50,8 @@ pub struct TrackArgs {
     /// Also write the per-frame lines to this file (JSON lines).
     #[arg(long, value_name = "FILE")]
     out_params: Option<PathBuf>,
-    /// Write each frame's model as DIR/frame_NNNNN.obj.
+    /// Write each frame's model as DIR/frame_NNNNN.obj, and for a depth frame a picture of the
+    /// frame with the model over it, DIR/frame_NNNNN.png.
     #[arg(long, value_name = "DIR")]
     out_dir: Option<PathBuf>,
     /// The outlier mixture's prior outlier fraction in [0, 1): the scene around the object.
@@ -142,6 +144,10 @@ pub fn run(args: TrackArgs) -> Result<(), String> {
             let state = ModelState::new(tess, p.translation, p.rotation, p.shape);
             write_model_obj(&dir.join(format!("frame_{i:05}.obj")), tess, &state)
                 .map_err(|e| e.to_string())?;
+            if let Frame::Depth(depth) = &frame {
+                write_track_png(&dir.join(format!("frame_{i:05}.png")), depth, p)
+                    .map_err(|e| e.to_string())?;
+            }
         }
         if !args.quiet {
             eprintln!(
