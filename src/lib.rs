@@ -108,9 +108,9 @@ pub mod prelude {
         ScenePart,
     };
     pub use crate::plugin::{
-        DeformableSqPlugin, DeformableSqSystems, FemMesh, FitDriver, FitFinished, GlobalShape,
-        ImageData, Inertia, LocalDofs, ModelFrozen, ModelSettings, PartJoint, RangeData,
-        RigidState, SimControl, Spring, SpringForces, simulation_task_pools,
+        DeformableSqPlugin, DeformableSqSystems, DepthTrack, FemMesh, FitDriver, FitFinished,
+        GlobalShape, ImageData, Inertia, LocalDofs, ModelFrozen, ModelSettings, PartJoint,
+        RangeData, RigidState, SimControl, Spring, SpringForces, simulation_task_pools,
     };
     pub use crate::render::{DeformableSqRenderPlugin, ModelColor, ModelMesh};
 }

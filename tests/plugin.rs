@@ -943,3 +943,70 @@ fn a_press_grabs_a_model_with_a_mouse_spring_and_a_release_lets_go() {
     assert_eq!(app.world().resource::<MouseSpring>().model, None);
     assert_eq!(springs(&app), 0);
 }
+
+#[test]
+fn a_depth_track_moves_its_model_as_the_library_tracker_does_bit_for_bit() {
+    use bevy_deformable_sq::model::track::{Frame, TrackOptions, Tracker};
+    use bevy_deformable_sq::synthetic::{depth_video, tracking_recipe};
+    let mut recipe = tracking_recipe(0);
+    recipe.frames = 6;
+    let video = depth_video(&recipe);
+    let frames: Vec<Frame> = (0..6).map(|i| Frame::Depth(video.depth_frame(i))).collect();
+    let start = video.truth[0];
+    let mut app = app();
+    let track = DepthTrack::new(frames.clone(), start, TrackOptions::default()).unwrap();
+    let model = app
+        .world_mut()
+        .spawn((
+            GlobalShape::from(start.shape),
+            RigidState {
+                translation: start.translation,
+                rotation: start.rotation,
+            },
+            track,
+        ))
+        .id();
+    // Pausing and stepping: no frame while paused, one per request.
+    app.world_mut()
+        .get_mut::<DepthTrack>(model)
+        .unwrap()
+        .playing = false;
+    for _ in 0..8 {
+        app.update();
+    }
+    assert_eq!(
+        app.world().get::<DepthTrack>(model).unwrap().next_frame(),
+        0
+    );
+    app.world_mut()
+        .get_mut::<DepthTrack>(model)
+        .unwrap()
+        .step_requests = 1;
+    for _ in 0..8 {
+        app.update();
+    }
+    assert_eq!(
+        app.world().get::<DepthTrack>(model).unwrap().next_frame(),
+        1
+    );
+    app.world_mut()
+        .get_mut::<DepthTrack>(model)
+        .unwrap()
+        .playing = true;
+    for _ in 0..64 {
+        app.update();
+        if app.world().get::<DepthTrack>(model).unwrap().finished() {
+            break;
+        }
+    }
+    assert!(app.world().get::<DepthTrack>(model).unwrap().finished());
+    assert!(app.world().get::<SimControl>(model).unwrap().paused);
+    let mut tracker = Tracker::new(start, TrackOptions::default()).unwrap();
+    let last = frames.iter().map(|f| tracker.step(f)).last().unwrap();
+    let rigid = app.world().get::<RigidState>(model).unwrap();
+    assert_eq!(rigid.translation, last.pose.translation);
+    assert_eq!(rigid.rotation, last.pose.rotation);
+    let shape = app.world().get::<GlobalShape>(model).unwrap();
+    assert_eq!(SuperquadricParams::from(*shape), last.pose.shape);
+    assert!((rigid.translation - video.truth[5].translation).length() < 2e-3);
+}

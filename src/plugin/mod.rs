@@ -5,7 +5,8 @@
 //! [`FixedUpdate`]) through one chained system set, [`DeformableSqSystems`], whose stages are the
 //! paper's loop. With the render plugins present each model is also a [`Mesh3d`] whose vertices
 //! follow the surface (see [`crate::render`]); with `MinimalPlugins` it simulates headless.
-//! With an `AssetPlugin`, scene files spawn models and their data (see [`scene`]).
+//! With an `AssetPlugin`, scene files spawn models and their data (see [`scene`]). A
+//! [`DepthTrack`] makes a model follow an object through a depth video.
 
 pub mod components;
 mod fit_driver;
@@ -13,10 +14,12 @@ pub mod headless;
 mod messages;
 pub mod scene;
 pub(crate) mod systems;
+mod track;
 
 pub use components::*;
 pub use fit_driver::FitDriver;
 pub use messages::{FitFinished, ModelFrozen};
+pub use track::DepthTrack;
 
 use bevy::ecs::schedule::{InternedScheduleLabel, ScheduleLabel};
 use bevy::prelude::*;
@@ -34,7 +37,8 @@ pub enum DeformableSqSystems {
     GatherForces,
     /// One explicit Euler step of C q̇ + K q = f_q (eq. 15).
     Integrate,
-    /// Models with a [`FitDriver`]: their fits started, followed and written back.
+    /// Models with a [`FitDriver`]: their fits started, followed and written back; models with
+    /// a [`DepthTrack`]: their next frame tracked.
     Converge,
     /// Copy the model frame into `Transform`, send [`FitFinished`] and [`ModelFrozen`] (and, in
     /// debug builds, check every state is finite).
@@ -139,7 +143,7 @@ impl Plugin for DeformableSqPlugin {
                         .chain()
                         .in_set(GatherForces),
                     systems::integrate.in_set(Integrate),
-                    fit_driver::drive_fits.in_set(Converge),
+                    (fit_driver::drive_fits, track::advance_tracks).in_set(Converge),
                     (systems::write_transforms, messages::send_messages).in_set(WriteBack),
                 ),
             );
