@@ -143,7 +143,9 @@ impl Plugin for DeformableSqPlugin {
                         .chain()
                         .in_set(GatherForces),
                     systems::integrate.in_set(Integrate),
-                    (fit_driver::drive_fits, track::advance_tracks).in_set(Converge),
+                    (fit_driver::drive_fits, track::advance_tracks)
+                        .chain()
+                        .in_set(Converge),
                     (systems::write_transforms, messages::send_messages).in_set(WriteBack),
                 ),
             );
