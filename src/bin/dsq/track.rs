@@ -98,9 +98,10 @@ pub fn run(args: TrackArgs) -> Result<(), String> {
         .map(load_intrinsics)
         .transpose()
         .map_err(|e| e.to_string())?;
-    let init = match (&args.init, roi) {
-        (Some(path), _) => Some(read_init(path)?),
-        (None, Some(_)) => None,
+    // The start: a pose, or the box to find one in within the first frame.
+    let first: Result<InitialPose, [u32; 4]> = match (&args.init, roi) {
+        (Some(path), _) => Ok(read_init(path)?),
+        (None, Some(roi)) => Err(roi),
         (None, None) => return Err("give --init PARAMS.json or --roi x0,y0,x1,y1".into()),
     };
     if let Some(dir) = &args.out_dir {
@@ -124,10 +125,9 @@ pub fn run(args: TrackArgs) -> Result<(), String> {
         let tracker = match &mut tracker {
             Some(t) => t,
             None => {
-                let pose = match (init, roi) {
-                    (Some(pose), _) => pose,
-                    (None, Some(roi)) => first_pose(path, &frame, camera.as_ref(), roi)?,
-                    (None, None) => unreachable!("checked above"),
+                let pose = match first {
+                    Ok(pose) => pose,
+                    Err(roi) => first_pose(path, &frame, camera.as_ref(), roi)?,
                 };
                 tracker.insert(Tracker::new(pose, opts).map_err(|e| format!("--init: {e}"))?)
             }
