@@ -11,12 +11,13 @@ use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential, Image
 use bevy_deformable_sq::model::forces::range::{
     InfluenceMode, QueryOrder, RangeForces, nearest_indices,
 };
-use bevy_deformable_sq::model::image_fit::{ImageExperiment, PartAxes, doll_experiment};
+use bevy_deformable_sq::model::image_fit::PartAxes;
 use bevy_deformable_sq::model::inertia::{
     InertiaParams, InertiaWorkspace, Velocity, step as inertia_step,
 };
 use bevy_deformable_sq::model::superquadric::SuperquadricParams;
 use bevy_deformable_sq::synthetic::superquadric_cloud;
+use bevy_deformable_sq::synthetic::{ImageExperiment, doll_experiment};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use glam::{DQuat, DVec3};
 use std::alloc::{GlobalAlloc, Layout, System};

@@ -8,6 +8,8 @@
 //! * [`superquadric_cloud`]: points on a superquadric with known pose and parameters.
 //! * [`ground_truth_cloud`]: a random superquadric seen as EMS's paper tests its fitter — a
 //!   partial view, noise and outliers — with [`ParameterErrors`] to score a fit against it.
+//! * [`photo`]: a generated photo of superquadrics on a desk (shading, texture, clutter,
+//!   shadow, blur, noise) with each object's mask and a user's four clicks.
 //! * [`union_cloud`]: a whole object of known parts, a body with limbs, whole or seen from one
 //!   side.
 
@@ -20,6 +22,8 @@ use std::f64::consts::{FRAC_PI_2, PI};
 
 mod creature;
 mod depth_video;
+mod image_experiments;
+mod photo;
 mod sweeps;
 mod union;
 
@@ -27,6 +31,8 @@ pub use creature::{Creature, CreaturePart, creature};
 pub use depth_video::{
     DEPTH_SCALE, DepthVideo, DepthVideoRecipe, PoseError, VGA, depth_video, tracking_recipe,
 };
+pub use image_experiments::{ImageExperiment, doll_experiment, pestle_experiment};
+pub use photo::{PHOTO_HEIGHT, PHOTO_WIDTH, Photo, PhotoObject, photo};
 pub use sweeps::{SweepSet, set_cloud, sweep_cloud};
 pub use union::{UnionCloud, union_cloud};
 

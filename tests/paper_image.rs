@@ -14,11 +14,12 @@ use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::Solver;
 use bevy_deformable_sq::model::forces::image::{ImageForces, ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::image_fit::{
-    ImageExperiment, ImagePartFit, PartAxes, PartSilhouette, doll_experiment, fit_image,
-    outline_potential, part_silhouette, parts_on, pestle_experiment, silhouette_iou,
+    ImagePartFit, PartAxes, PartSilhouette, fit_image, outline_potential, part_silhouette,
+    parts_on, silhouette_iou,
 };
 use bevy_deformable_sq::plugin::ImageData;
 use bevy_deformable_sq::prelude::*;
+use bevy_deformable_sq::synthetic::{ImageExperiment, doll_experiment, pestle_experiment};
 use glam::{DVec2, DVec3};
 use std::path::Path;
 use std::sync::Arc;

@@ -9,12 +9,13 @@ use bevy_deformable_sq::model::fem::Tessellation;
 use bevy_deformable_sq::model::fit::{
     FitOptions, MIN_POINTS, Residuals, bounding_diagonal, fit, point_distances, residuals,
 };
-use bevy_deformable_sq::model::image_fit::{PartAxes, doll_experiment, pestle_experiment};
+use bevy_deformable_sq::model::image_fit::PartAxes;
 use bevy_deformable_sq::plugin::FitDriver;
 use bevy_deformable_sq::plugin::scene::{SceneImage, save_scene};
 use bevy_deformable_sq::prelude::*;
 use bevy_deformable_sq::scene::{PartRun, SceneDef, SceneError, run_scene};
 use bevy_deformable_sq::synthetic;
+use bevy_deformable_sq::synthetic::{doll_experiment, pestle_experiment};
 use glam::{DQuat, DVec2, DVec3};
 use std::path::{Path, PathBuf};
 

@@ -8,11 +8,10 @@ use bevy_deformable_sq::model::fit::{
     CloudOptions, FitOptions, NoiseStiffness, Solver, Stiffness, k_for_nodes,
 };
 use bevy_deformable_sq::model::forces::image::DEFAULT_SIGMA;
-use bevy_deformable_sq::model::image_fit::{
-    ImageChoices, ImageFitOptions, doll_experiment, pestle_experiment,
-};
+use bevy_deformable_sq::model::image_fit::{ImageChoices, ImageFitOptions};
 use bevy_deformable_sq::model::parts::{DEFAULT_MAX_PARTS, PartCount};
 use bevy_deformable_sq::synthetic;
+use bevy_deformable_sq::synthetic::{doll_experiment, pestle_experiment};
 use clap::{Args as ClapArgs, ValueEnum};
 use glam::{DVec2, DVec3};
 use std::path::PathBuf;

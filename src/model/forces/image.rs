@@ -280,6 +280,29 @@ impl ImagePotential {
         self.colour.as_deref()
     }
 
+    /// The image's relief: at every pixel, how fast the smoothed image changes per pixel, the
+    /// norm of ∇(G_σ ∗ I) over the colour channels on a colour image, over the luminance
+    /// otherwise. Edges are its ridges, whatever the brightness on either side.
+    pub(crate) fn relief(&self) -> Vec<f64> {
+        let (w, h) = (self.width, self.height);
+        let Some(rgb) = &self.colour else {
+            return self.p.iter().map(|p| p * self.pitch).collect();
+        };
+        let kernel = gaussian_kernel(self.sigma);
+        let mut sq = vec![0.0; w * h];
+        for channel in 0..3 {
+            let c: Vec<f64> = rgb.iter().map(|p| f64::from(p[channel])).collect();
+            let smooth = convolve(&convolve(&c, w, h, &kernel, true), w, h, &kernel, false);
+            for row in 0..h {
+                for col in 0..w {
+                    let [dx, dy] = pixel_gradient(&smooth, w, h, col, row);
+                    sq[row * w + col] += dx * dx + dy * dy;
+                }
+            }
+        }
+        sq.into_iter().map(f64::sqrt).collect()
+    }
+
     /// Width in pixels.
     pub fn width(&self) -> usize {
         self.width
@@ -757,6 +780,32 @@ pub fn otsu_threshold(luminance: &[f64]) -> f64 {
         }
     }
     (best_t as f64 + 0.5) / 255.0
+}
+
+/// True when Otsu's two classes of `values` hold at least [`TWO_TONE`] of their variance: the
+/// values are two tones (a silhouette), not the many of a photo.
+pub(crate) fn two_toned(values: &[f64]) -> bool {
+    two_tone_share(values) >= TWO_TONE
+}
+
+/// The share of the variance of `values` that Otsu's two classes hold (0 for no values or no
+/// variance).
+pub(crate) fn two_tone_share(values: &[f64]) -> f64 {
+    let n = values.len() as f64;
+    if n == 0.0 {
+        return 0.0;
+    }
+    let t = otsu_threshold(values);
+    let (mut sums, mut counts) = ([0.0; 2], [0.0; 2]);
+    for &v in values {
+        sums[usize::from(v > t)] += v;
+        counts[usize::from(v > t)] += 1.0;
+    }
+    let mean = values.iter().sum::<f64>() / n;
+    let total = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    let between = counts[0] * counts[1] / (n * n)
+        * (sums[1] / counts[1].max(1.0) - sums[0] / counts[0].max(1.0)).powi(2);
+    if total > 0.0 { between / total } else { 0.0 }
 }
 
 /// See [`ImagePotential::foreground`], and [`ImagePotential::two_tone`].

@@ -2,7 +2,7 @@
 //! resolved once into [`ImageFitOptions`] and the potential's σ, so that every front end fits an
 //! image the same way.
 
-use super::ImageFitOptions;
+use super::options::ImageFitOptions;
 use crate::model::fit::Solver;
 
 /// A user's settings for an image fit; `None` and `false` keep the base's (the defaults, or a

@@ -1,14 +1,29 @@
-//! The local stage of a solved image fit ([`super::solved`]): a closed contour on the fitted
-//! outline with one radial displacement per node, its tension, and its lift onto the membrane.
+//! The local stage of a solved image fit: a closed contour on the outline the global stage
+//! ([`super::solved`]) fitted, with one radial displacement per node, its tension, and its lift
+//! onto the membrane.
+//!
+//! **The local stage** is a closed contour on that outline with one radial displacement δ_j per
+//! node ([`SNAKE_NODES`] nodes, even in the outline's parameter), the same residuals at the
+//! displaced nodes and the area term, and a tension Σ ℓ²(δ_{j+1} − δ_j)²/Δs_j with
+//! ℓ = [`TENSION_SIGMAS`] σ, so that it follows the image's outline at the scale the potential
+//! resolves. Its energy is bounded below, and it is solved by the same engine to rest; no node
+//! comes nearer the centre than twice the least semi-axis. The displacement is lifted onto the
+//! membrane: a node whose projection lies a fraction t of the way from the centre to the outline,
+//! along a ray, moves by t δ along that ray (interpolated between contour nodes).
+//!
 
-use super::super::dynamics::ModelState;
-use super::super::fem::Tessellation;
-use super::super::lm::{LmOptions, Problem, solve_em};
-use super::super::superquadric::spow;
-use super::solved::{Area, Fields, KINDS, MIN_HALF_WIDTH, Outline, SNAKE_NODES, TENSION_SIGMAS};
+use super::outline::{Area, Fields, KINDS, MIN_HALF_WIDTH, Outline};
+use crate::model::dynamics::ModelState;
+use crate::model::fem::Tessellation;
+use crate::model::lm::{LmOptions, Problem, solve_em};
+use crate::model::superquadric::spow;
 use glam::{DQuat, DVec2, DVec3};
 use std::f64::consts::TAU;
 
+/// Nodes of the local stage's contour.
+pub const SNAKE_NODES: usize = 64;
+/// The contour's tension length, in units of the potential's σ.
+pub const TENSION_SIGMAS: f64 = 2.0;
 /// The contour's unknowns: a radial displacement (pixels) per node.
 const M: usize = SNAKE_NODES;
 
@@ -137,7 +152,7 @@ impl Problem<M> for ContourProblem<'_> {
     }
 }
 
-/// Solves the contour on outline `o` (see [`super::solved`]'s module docs).
+/// Solves the contour on outline `o` (see the module docs).
 pub(crate) fn solve_contour(
     fields: &Fields,
     area: Option<&Area>,
@@ -256,13 +271,13 @@ pub(crate) fn lift(contour: &Contour, pitch: f64, tess: &Tessellation, state: &m
 
 #[cfg(test)]
 mod tests {
-    use super::super::solved::tests::{blob, part_on};
     use super::*;
+    use crate::model::image_fit::solved::tests::{blob, part_on};
 
     #[test]
     fn the_contours_gradient_is_the_central_difference_and_its_energy_falls() {
         let (pot, truth) = blob();
-        let edges = super::super::evidence::edge_distance(&pot);
+        let edges = crate::model::image_fit::evidence::edge_distance(&pot);
         let part = part_on(&pot, edges.as_ref());
         let fields = part.fields();
         let area = part.area(&[]);
@@ -311,7 +326,7 @@ mod tests {
             area.as_ref(),
             &o,
             pot.sigma(),
-            &super::super::solved::engine_options(),
+            &crate::model::image_fit::outline::engine_options(),
         );
         assert!(fit.converged && fit.delta.iter().all(|x| x.is_finite()));
         assert!(

@@ -1,4 +1,6 @@
+use super::dynamics::RestCheck;
 use super::*;
+use glam::{DVec2, DVec3};
 
 #[test]
 fn four_points_on_the_ground_place_the_ellipsoid_they_span() {

@@ -1,4 +1,7 @@
 use super::*;
+use crate::model::fem::Tessellation;
+use crate::model::image_fit::evidence;
+use crate::model::image_fit::{ImageFitOptions, fit_parts_together};
 
 /// `o` with unknown `k` of (cx, cy, θ, r1, r3, ε1) moved by `s`.
 fn shifted(o: Outline, k: usize, s: f64) -> Outline {
@@ -182,6 +185,6 @@ fn a_solved_part_lowers_its_energy_stays_finite_and_comes_to_rest_on_its_truth()
     let (again, _, _, moved) = part.solve_global(o, area.as_ref(), false);
     assert!(moved < REST_PX, "{o:?} → {again:?}");
     // With the contour: finite, at rest, and its outline still on the truth.
-    let solved = &solve_parts(&pot, edges.as_ref(), &tess, &[start], true, false)[0];
+    let solved = &fit_parts_together(&tess, &pot, &[start], &ImageFitOptions::default())[0];
     assert!(solved.state.is_finite() && solved.converged);
 }
