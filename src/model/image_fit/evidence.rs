@@ -192,8 +192,6 @@ pub(crate) fn edge_distance(pot: &ImagePotential) -> Option<Raster> {
     })
 }
 
-/// Labels the 4-connected components of equal `class`; returns the label of every pixel and the
-/// number of components.
 /// The signed distance (pixels) to the boundary of `figure`, negative inside: half a pixel at
 /// the pixels on either side of it.
 pub(crate) fn signed_distance(width: usize, height: usize, figure: &[bool]) -> Raster {

@@ -68,6 +68,8 @@ pub(super) fn part_figure(pot: &ImagePotential, placed: &Outline) -> Option<(Ras
     })
 }
 
+/// Labels the 4-connected components of equal `class`; returns the label of every pixel and the
+/// number of components.
 fn components<T: PartialEq>(width: usize, height: usize, class: &[T]) -> (Vec<u32>, usize) {
     let mut label = vec![u32::MAX; width * height];
     let mut next = 0u32;
