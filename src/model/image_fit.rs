@@ -17,7 +17,7 @@
 //! (centre, turn, two semi-axes, ε1), is solved by the Levenberg–Marquardt engine of
 //! [`crate::model::lm`] against the distance from the image's Canny edges, the distance outside
 //! the part's figure (what its clicks lie on, bounded by edges: the watershed of the image's
-//! colour relief from the placement's middle, [`CORE`], against all beyond it grown [`GROUND`]
+//! colour relief from the placement's core, [`CORE`], against all beyond it grown [`GROUND`]
 //! times; on a silhouette, what encloses what) and the figure's area near it. Parts on one
 //! image are solved in sweeps until none moves ([`fit_parts_together`]): what one covers, the
 //! others neither gain nor lose. Then a closed contour with one radial displacement per node and
