@@ -10,6 +10,7 @@ use bevy_deformable_sq::model::forces::image::{ImageFrame, ImagePotential};
 use bevy_deformable_sq::model::image_fit::{
     ImageFitOptions, PartAxes, fit_image, part_silhouette, parts_on, silhouette_iou,
 };
+use bevy_deformable_sq::model::image_measure::mask_axis_ends;
 use bevy_deformable_sq::synthetic::doll_experiment;
 use glam::DVec2;
 use std::path::Path;
@@ -33,28 +34,10 @@ fn load_labels(name: &str) -> (usize, usize, Vec<u8>) {
 /// axis, then both ends of its minor axis, each 2σ from the centroid along the axis (a disc's
 /// radius), rounded to whole pixels.
 fn four_points(w: usize, labels: &[u8], k: u8) -> [DVec2; 4] {
-    let pixels: Vec<DVec2> = (0..labels.len())
-        .filter(|&i| labels[i] == k)
-        .map(|i| DVec2::new((i % w) as f64, (i / w) as f64))
-        .collect();
-    let n = pixels.len() as f64;
-    let c = pixels.iter().copied().sum::<DVec2>() / n;
-    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
-    for p in &pixels {
-        let d = *p - c;
-        (sxx, sxy, syy) = (
-            sxx + d.x * d.x / n,
-            sxy + d.x * d.y / n,
-            syy + d.y * d.y / n,
-        );
-    }
-    let mean = (sxx + syy) / 2.0;
-    let spread = (((sxx - syy) / 2.0).powi(2) + sxy * sxy).sqrt();
-    let (l1, l2) = (mean + spread, (mean - spread).max(0.0));
-    let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
-    let e1 = DVec2::new(angle.cos(), angle.sin());
-    let (a, b) = (2.0 * l1.sqrt() * e1, 2.0 * l2.sqrt() * e1.perp());
-    [c - a, c + a, c - b, c + b].map(|p| p.round())
+    let object: Vec<bool> = labels.iter().map(|&l| l == k).collect();
+    mask_axis_ends(w, &object)
+        .expect("every label has pixels")
+        .map(|p| p.round())
 }
 
 /// `points` as a hurried user clicks them: each off by up to `slop` × the minor semi-axis in x

@@ -289,6 +289,31 @@ pub fn part_silhouette(
     }
 }
 
+/// Both ends of the major axis, then both ends of the minor axis, of pixels with centroid
+/// `centroid` and covariance `covariance` (pixels, rows downwards): each 2σ from the centroid
+/// along its principal axis, the semi-axes of a filled ellipse with those moments.
+pub fn axis_ends(centroid: DVec2, covariance: [[f64; 2]; 2]) -> [DVec2; 4] {
+    let [[sxx, sxy], [_, syy]] = covariance;
+    let mean = 0.5 * (sxx + syy);
+    let spread = (0.25 * (sxx - syy).powi(2) + sxy * sxy).sqrt();
+    let (l1, l2) = (mean + spread, (mean - spread).max(0.0));
+    let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+    let e1 = DVec2::new(angle.cos(), angle.sin());
+    let (a, b) = (2.0 * l1.sqrt() * e1, 2.0 * l2.sqrt() * e1.perp());
+    [centroid - a, centroid + a, centroid - b, centroid + b]
+}
+
+/// [`axis_ends`] of the pixels where `mask` holds (row-major, `width` pixels a row): where a
+/// user would click to place a part on them. `None` for an empty mask.
+pub fn mask_axis_ends(width: usize, mask: &[bool]) -> Option<[DVec2; 4]> {
+    let mut moments = PixelMoments::default();
+    for i in (0..mask.len()).filter(|&i| mask[i]) {
+        moments.add(DVec2::new((i % width) as f64, (i / width) as f64));
+    }
+    let (centroid, covariance) = moments.mean_and_covariance()?;
+    Some(axis_ends(centroid, covariance))
+}
+
 /// Running sums of pixel positions: the count, mean and covariance of a set of pixels.
 #[derive(Clone, Copy, Debug, Default)]
 pub(crate) struct PixelMoments {

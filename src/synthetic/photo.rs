@@ -15,6 +15,8 @@
 //!   2σ of its pixels from the centroid), each moved by up to a quarter of the mean semi-axis.
 
 use super::Rng;
+use crate::model::forces::image::smooth;
+use crate::model::image_measure::mask_axis_ends;
 use crate::model::superquadric::{SuperquadricParams, inside_outside};
 use glam::{DMat3, DVec2, DVec3};
 
@@ -287,8 +289,12 @@ pub fn photo(seed: u64) -> Photo {
         .into_iter()
         .zip(kinds)
         .map(|(mask, kind)| {
-            let clicks = axis_clicks(w, &mask).map(|p| {
-                let off = rng.range(0.0, 0.25) * mean_semi_axis(w, &mask);
+            // A solid is at least 14 px across, so its mask is never empty.
+            let ends = mask_axis_ends(w, &mask).unwrap_or([DVec2::ZERO; 4]);
+            let mean_semi_axis =
+                ((ends[1] - ends[0]).length() + (ends[3] - ends[2]).length()) / 4.0;
+            let clicks = ends.map(|p| {
+                let off = rng.range(0.0, 0.25) * mean_semi_axis;
                 let turn = rng.range(0.0, std::f64::consts::TAU);
                 (p + off * DVec2::new(turn.cos(), turn.sin())).round()
             });
@@ -343,75 +349,20 @@ fn dilate(w: usize, h: usize, set: &[bool], r: usize) -> Vec<bool> {
     out
 }
 
-/// A separable Gaussian blur of standard deviation `sigma` pixels (none at 0), edges clamped.
+/// A Gaussian blur of standard deviation `sigma` pixels (none at 0) of each colour channel, the
+/// one the image potential smooths with.
 fn gaussian_blur(w: usize, h: usize, img: &[[f64; 3]], sigma: f64) -> Vec<[f64; 3]> {
     if sigma <= 0.0 {
         return img.to_vec();
     }
-    let r = (3.0 * sigma).ceil() as isize;
-    let kernel: Vec<f64> = (-r..=r)
-        .map(|d| (-(d * d) as f64 / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let total: f64 = kernel.iter().sum();
-    let pass = |src: &[[f64; 3]], along_rows: bool| -> Vec<[f64; 3]> {
-        (0..w * h)
-            .map(|i| {
-                let (c, row) = ((i % w) as isize, (i / w) as isize);
-                let mut acc = [0.0; 3];
-                for (k, &g) in kernel.iter().enumerate() {
-                    let d = k as isize - r;
-                    let j = if along_rows {
-                        row as usize * w + (c + d).clamp(0, w as isize - 1) as usize
-                    } else {
-                        (row + d).clamp(0, h as isize - 1) as usize * w + c as usize
-                    };
-                    for (a, v) in acc.iter_mut().zip(src[j]) {
-                        *a += g * v / total;
-                    }
-                }
-                acc
-            })
-            .collect()
-    };
-    pass(&pass(img, true), false)
-}
-
-/// The mask's pixels' centroid and covariance.
-fn moments(w: usize, mask: &[bool]) -> (DVec2, [f64; 3]) {
-    let pixels: Vec<DVec2> = (0..mask.len())
-        .filter(|&i| mask[i])
-        .map(|i| DVec2::new((i % w) as f64, (i / w) as f64))
-        .collect();
-    let n = pixels.len().max(1) as f64;
-    let c = pixels.iter().copied().sum::<DVec2>() / n;
-    let mut s = [0.0; 3];
-    for p in &pixels {
-        let d = *p - c;
-        s[0] += d.x * d.x / n;
-        s[1] += d.x * d.y / n;
-        s[2] += d.y * d.y / n;
+    let mut out = img.to_vec();
+    for channel in 0..3 {
+        let c: Vec<f64> = img.iter().map(|p| p[channel]).collect();
+        for (o, v) in out.iter_mut().zip(smooth(&c, w, h, sigma)) {
+            o[channel] = v;
+        }
     }
-    (c, s)
-}
-
-/// Both ends of the mask's major axis, then of its minor, 2σ from its centroid.
-fn axis_clicks(w: usize, mask: &[bool]) -> [DVec2; 4] {
-    let (c, [sxx, sxy, syy]) = moments(w, mask);
-    let mean = (sxx + syy) / 2.0;
-    let spread = (((sxx - syy) / 2.0).powi(2) + sxy * sxy).sqrt();
-    let (l1, l2) = (mean + spread, (mean - spread).max(0.0));
-    let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
-    let e1 = DVec2::new(angle.cos(), angle.sin());
-    let (a, b) = (2.0 * l1.sqrt() * e1, 2.0 * l2.sqrt() * e1.perp());
-    [c - a, c + a, c - b, c + b]
-}
-
-/// The mean of the mask's two semi-axes (2σ along each principal axis).
-fn mean_semi_axis(w: usize, mask: &[bool]) -> f64 {
-    let (_, [sxx, sxy, syy]) = moments(w, mask);
-    let mean = (sxx + syy) / 2.0;
-    let spread = (((sxx - syy) / 2.0).powi(2) + sxy * sxy).sqrt();
-    (2.0 * (mean + spread).sqrt() + 2.0 * (mean - spread).max(0.0).sqrt()) / 2.0
+    out
 }
 
 #[cfg(test)]

@@ -36,7 +36,7 @@ mod region;
 mod tests;
 
 pub use blur::MIN_SIGMA;
-use blur::{convolve, gaussian_kernel};
+pub(crate) use blur::smooth;
 pub use region::RegionModel;
 
 /// Default half-width of the band |x3| < band of nodes that feel the image (the paper's 0.2).
@@ -204,14 +204,7 @@ impl ImagePotential {
             return Err(ImageError::BadFrame);
         }
         let pitch = frame.extent / width.max(height) as f64;
-        let kernel = gaussian_kernel(sigma);
-        let smooth = convolve(
-            &convolve(&luminance, width, height, &kernel, true),
-            width,
-            height,
-            &kernel,
-            false,
-        );
+        let smooth = smooth(&luminance, width, height, sigma);
         let mut p = vec![0.0; width * height];
         let mut brightening = vec![DVec2::ZERO; width * height];
         for row in 0..height {
@@ -288,11 +281,10 @@ impl ImagePotential {
         let Some(rgb) = &self.colour else {
             return self.p.iter().map(|p| p * self.pitch).collect();
         };
-        let kernel = gaussian_kernel(self.sigma);
         let mut sq = vec![0.0; w * h];
         for channel in 0..3 {
             let c: Vec<f64> = rgb.iter().map(|p| f64::from(p[channel])).collect();
-            let smooth = convolve(&convolve(&c, w, h, &kernel, true), w, h, &kernel, false);
+            let smooth = smooth(&c, w, h, self.sigma);
             for row in 0..h {
                 for col in 0..w {
                     let [dx, dy] = pixel_gradient(&smooth, w, h, col, row);

@@ -4,7 +4,7 @@
 use crate::model::dynamics::ModelState;
 use crate::model::fem::Tessellation;
 use crate::model::forces::image::ImagePotential;
-use crate::model::image_measure::PixelMoments;
+use crate::model::image_measure::{PixelMoments, axis_ends};
 use crate::model::superquadric::SuperquadricParams;
 use glam::{DMat3, DQuat, DVec2, DVec3};
 
@@ -69,20 +69,13 @@ impl PartAxes {
 
     /// From a blob's pixel moments.
     pub fn from_blob(potential: &ImagePotential, blob: &Blob) -> Result<Self, PlacementError> {
-        let [[sxx, sxy], [_, syy]] = blob.covariance;
-        // Eigen-decomposition of the 2×2 covariance (pixels, y down).
-        let mean = 0.5 * (sxx + syy);
-        let d = (0.25 * (sxx - syy).powi(2) + sxy * sxy).sqrt();
-        let (l1, l2) = (mean + d, (mean - d).max(0.0));
-        let angle = 0.5 * (2.0 * sxy).atan2(sxx - syy);
-        let dir_px = DVec2::new(angle.cos(), angle.sin());
         let c = blob.centroid;
-        let major_end = potential.to_plane(c + dir_px * 2.0 * l1.sqrt());
+        let [_, major_end, _, minor_end] = axis_ends(c, blob.covariance);
         let center = potential.to_plane(c);
         let axes = Self {
             center,
-            major: major_end - center,
-            minor: 2.0 * l2.sqrt() * potential.pitch(),
+            major: potential.to_plane(major_end) - center,
+            minor: (minor_end - c).length() * potential.pitch(),
         };
         axes.check(potential)
     }

@@ -50,3 +50,16 @@ pub(super) fn convolve(
     }
     out
 }
+
+/// `values` (`width` × `height`, row-major) smoothed by a Gaussian of `sigma` pixels, rows then
+/// columns, edges clamped.
+pub(crate) fn smooth(values: &[f64], width: usize, height: usize, sigma: f64) -> Vec<f64> {
+    let kernel = gaussian_kernel(sigma);
+    convolve(
+        &convolve(values, width, height, &kernel, true),
+        width,
+        height,
+        &kernel,
+        false,
+    )
+}
