@@ -107,9 +107,10 @@ pub fn fit_parts_together(
     opts: &ImageFitOptions,
 ) -> Vec<ImagePartFit> {
     let edges = evidence::edge_distance(potential);
+    let relief = potential.relief();
     let parts: Vec<solved::Part> = initial
         .iter()
-        .map(|s| solved::Part::new(potential, edges.as_ref(), s))
+        .map(|s| solved::Part::new(potential, edges.as_ref(), &relief, s))
         .collect();
     let global = solved::sweep(&parts, opts.fix_epsilon);
     let outlines: Vec<outline::Outline> = global.iter().map(|g| g.0).collect();

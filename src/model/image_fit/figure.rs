@@ -42,7 +42,11 @@ pub const GROUND: f64 = 1.75;
 /// term's pixels ([`Area`]), seeded by the placed outline shrunk by [`CORE`] and all beyond it
 /// grown by [`GROUND`]; `None` without a figure, or with one that fills the part's reach
 /// ([`FILLED`]) or, on a photo, is larger than the part may grow.
-pub(super) fn part_figure(pot: &ImagePotential, placed: &Outline) -> Option<(Raster, Area)> {
+pub(super) fn part_figure(
+    pot: &ImagePotential,
+    relief: &[f64],
+    placed: &Outline,
+) -> Option<(Raster, Area)> {
     let sigma = pot.sigma();
     let scaled = |k: f64| Outline {
         r: placed.r.map(|r| r * k),
@@ -51,6 +55,7 @@ pub(super) fn part_figure(pot: &ImagePotential, placed: &Outline) -> Option<(Ras
     let (core, reach) = (scaled(CORE), scaled(GROUND));
     figure_distance(
         pot,
+        relief,
         |q| placed.contains(q),
         |q| core.contains(q),
         |q| !reach.contains(q),
@@ -142,9 +147,11 @@ fn depths(width: usize, height: usize, label: &[u32], count: usize) -> Vec<u32> 
 /// The figure a part placed over the pixels where `placed` holds belongs to (see the module
 /// docs), as a mask; `None` when it would be the whole image or nothing. On a two-tone image it
 /// is what encloses what among the image's two classes; on a photo, the [`watershed`] of the
-/// image's relief from the seeds `core` (the object's) and `ground` (its surroundings').
+/// image's `relief` ([`ImagePotential::relief`]) from the seeds `core` (the object's) and
+/// `ground` (its surroundings').
 pub(crate) fn figure(
     pot: &ImagePotential,
+    relief: &[f64],
     placed: impl Fn(DVec2) -> bool,
     core: impl Fn(DVec2) -> bool,
     ground: impl Fn(DVec2) -> bool,
@@ -174,7 +181,7 @@ pub(crate) fn figure(
         if !seeds.contains(&OBJECT_LABEL) || !seeds.contains(&GROUND_LABEL) {
             return None;
         }
-        let label = watershed(w, h, &pot.relief(), seeds);
+        let label = watershed(w, h, relief, seeds);
         // The object's pixels with what they enclose.
         let class: Vec<u32> = label
             .iter()
@@ -273,11 +280,13 @@ fn enclosed_by(w: usize, h: usize, label: &[u32], object: u32) -> Option<Vec<boo
 /// [`signed_distance`]).
 pub(crate) fn figure_distance(
     pot: &ImagePotential,
+    relief: &[f64],
     placed: impl Fn(DVec2) -> bool,
     core: impl Fn(DVec2) -> bool,
     ground: impl Fn(DVec2) -> bool,
 ) -> Option<Raster> {
-    figure(pot, placed, core, ground).map(|f| signed_distance(pot.width(), pot.height(), &f))
+    figure(pot, relief, placed, core, ground)
+        .map(|f| signed_distance(pot.width(), pot.height(), &f))
 }
 
 #[cfg(test)]
@@ -327,7 +336,7 @@ mod tests {
             .collect();
         let pot = potential(w, h, lum);
         let placed = |q: DVec2| (q - DVec2::new(20.0, 40.0)).length() < 10.0;
-        let f = figure(&pot, placed, |_| false, |_| false).expect("a figure");
+        let f = figure(&pot, &pot.relief(), placed, |_| false, |_| false).expect("a figure");
         for i in 0..w * h {
             let (c, r) = (i % w, i / w);
             let square = (20..60).contains(&c) && (20..60).contains(&r);
@@ -361,7 +370,14 @@ mod tests {
         );
         let pot = grey.with_colour(rgb).unwrap();
         let r = |q: DVec2| (q - DVec2::splat(30.0)).length();
-        let f = figure(&pot, |q| r(q) < 9.0, |q| r(q) < 4.5, |q| r(q) > 16.0).expect("a figure");
+        let f = figure(
+            &pot,
+            &pot.relief(),
+            |q| r(q) < 9.0,
+            |q| r(q) < 4.5,
+            |q| r(q) > 16.0,
+        )
+        .expect("a figure");
         assert!((0..w * h).all(|i| f[i] == inside(i)));
     }
 
@@ -389,7 +405,14 @@ mod tests {
         let pot = potential(w, h, lum);
         assert!(pot.two_tone().is_none());
         let r = |q: DVec2| (q - DVec2::new(41.0, 39.0)).length();
-        let f = figure(&pot, |q| r(q) < 20.0, |q| r(q) < 9.0, |q| r(q) > 33.0).expect("a figure");
+        let f = figure(
+            &pot,
+            &pot.relief(),
+            |q| r(q) < 20.0,
+            |q| r(q) < 9.0,
+            |q| r(q) > 33.0,
+        )
+        .expect("a figure");
         let wrong = (0..w * h)
             .filter(|&i| f[i] != ((20..60).contains(&(i % w)) && (20..60).contains(&(i / w))))
             .count();

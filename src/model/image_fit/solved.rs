@@ -154,13 +154,14 @@ impl<'a> Part<'a> {
     pub(super) fn new(
         pot: &ImagePotential,
         edges: Option<&'a Raster>,
+        relief: &[f64],
         initial: &ModelState,
     ) -> Self {
         let (placed, depth, e2) = Outline::of_state(pot, initial);
         let sigma = pot.sigma();
         let least = MIN_HALF_WIDTH.max(sigma);
         let most = MAX_GROWTH.sqrt() * placed.r[0].max(placed.r[1]);
-        let figure = figure::part_figure(pot, &placed);
+        let figure = figure::part_figure(pot, relief, &placed);
         Self {
             placed,
             depth,

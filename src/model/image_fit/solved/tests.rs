@@ -110,7 +110,7 @@ pub(in crate::model::image_fit) fn part_on<'a>(
     let (_, truth) = blob();
     let tess = Tessellation::new(3);
     let start = placed_off(&truth).state(pot, 13.0 * pot.pitch(), 1.0, 0.0, &tess);
-    Part::new(pot, edges, &start)
+    Part::new(pot, edges, &pot.relief(), &start)
 }
 
 #[test]
@@ -155,7 +155,7 @@ fn a_solved_part_lowers_its_energy_stays_finite_and_comes_to_rest_on_its_truth()
     let edges = evidence::edge_distance(&pot);
     let tess = Tessellation::new(15);
     let start = placed_off(&truth).state(&pot, 13.0 * pot.pitch(), 1.0, 0.0, &tess);
-    let part = Part::new(&pot, edges.as_ref(), &start);
+    let part = Part::new(&pot, edges.as_ref(), &pot.relief(), &start);
     let area = part.area(&[]);
     let fields = part.fields();
     let problem = part.problem(&fields, area.as_ref(), false);
