@@ -273,7 +273,8 @@ impl ImagePotential {
 
     /// The image's relief: at every pixel, how fast the smoothed image changes per pixel, the
     /// norm of ∇(G_σ ∗ I) over the colour channels on a colour image, over the luminance
-    /// otherwise. Edges are its ridges, whatever the brightness on either side.
+    /// otherwise: the potential P of eq. (20), per pixel rather than per unit length, taken over
+    /// colour. Edges are its ridges, whatever the brightness on either side.
     pub(crate) fn relief(&self) -> Vec<f64> {
         let (w, h) = (self.width, self.height);
         let Some(rgb) = &self.colour else {
